@@ -1,0 +1,206 @@
+"""The ``mapfusion`` command line (typer + rich).
+
+The CLI owns printing, progress and exit codes: bad input exits 2 with one line on stderr, an
+internal failure exits 1. Heavy modules are imported inside the commands so ``--help`` is quick.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from .errors import InputError
+
+app = typer.Typer(
+    name="mapfusion",
+    help="Map-Fusion test bed: simulate drives on OSM maps, fuse odometry, GPS and the map, score against truth.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+maps_app = typer.Typer(help="Road maps: build, inspect and generate.", no_args_is_help=True)
+app.add_typer(maps_app, name="maps")
+
+console = Console()
+err_console = Console(stderr=True)
+
+
+def _fail(message: str, code: int = 2) -> None:
+    """One clear line on stderr and the exit code (2: bad input)."""
+    err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+@app.callback()
+def _main(
+    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="More log output (-v info, -vv debug).")] = 0,
+) -> None:
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    from rich.logging import RichHandler
+
+    logging.basicConfig(level=level, handlers=[RichHandler(console=err_console, show_path=False)], force=True)
+
+
+def _stats_table(stats, title: str) -> Table:
+    t = Table(title=title, show_header=True)
+    t.add_column("quantity")
+    t.add_column("value", justify="right")
+    rows = [
+        ("OSM ways (drivable)", f"{stats.ways:,}"),
+        ("graph edges", f"{stats.edges:,}"),
+        ("junctions (degree ≥ 3)", f"{stats.junctions:,}"),
+        ("graph vertices", f"{stats.vertices:,}"),
+        ("way-points", f"{stats.waypoints:,}"),
+        ("road length", f"{stats.road_km:.2f} km"),
+        ("tunnel length", f"{stats.tunnel_km:.2f} km"),
+        ("mean way-point spacing", f"{stats.mean_spacing_m:.3f} m"),
+        ("build time", f"{stats.build_s:.2f} s" + (" (read from cache)" if stats.from_cache else "")),
+    ]
+    for k, v in rows:
+        t.add_row(k, v)
+    return t
+
+
+@maps_app.command("build")
+def maps_build(
+    osm: Annotated[str, typer.Argument(help="OSM file (.osm, .osm.gz, .osm.bz2, .osm.pbf) or a built-in map name.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print the statistics as JSON.")] = False,
+    spacing_m: Annotated[float, typer.Option(help="Way-point spacing in metres.")] = 1.0,
+    lane_width_m: Annotated[float, typer.Option(help="Lane width in metres (road width = lanes × lane width).")] = 3.0,
+    no_cache: Annotated[bool, typer.Option("--no-cache", help="Rebuild even when a cached map exists.")] = False,
+) -> None:
+    """Build the processed road map of an OSM file (cached) and print its statistics."""
+    from .maps import resolve_map
+    from .roadmap import RoadMap, RoadMapConfig
+
+    try:
+        cfg = RoadMapConfig(spacing_m=spacing_m, lane_width_m=lane_width_m)
+        path = resolve_map(osm)
+        with err_console.status(f"building road map of {path.name} ..."):
+            road = RoadMap.from_osm(path, cfg, cache=not no_cache)
+    except InputError as exc:
+        _fail(str(exc))
+    stats = road.stats()
+    if as_json:
+        print(json.dumps(stats.to_dict(), indent=2))
+    else:
+        console.print(_stats_table(stats, f"Road map: {path}"))
+
+
+def _parse_params(pairs: list[str], func) -> dict:
+    """``KEY=VALUE`` pairs → keyword arguments of ``func``, converted to its parameters' types."""
+    sig = inspect.signature(func)
+    out = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise InputError(f"--param {pair!r}: expected KEY=VALUE")
+        key, value = (s.strip() for s in pair.split("=", 1))
+        if key not in sig.parameters:
+            raise InputError(f"--param {key!r}: {func.__name__} takes {', '.join(sig.parameters) or 'no parameters'}")
+        default = sig.parameters[key].default
+        try:
+            out[key] = type(default)(value) if default is not inspect.Parameter.empty else float(value)
+        except ValueError as exc:
+            raise InputError(f"--param {key}={value!r}: not a {type(default).__name__}") from exc
+    return out
+
+
+@maps_app.command("generate")
+def maps_generate(
+    kind: Annotated[str, typer.Argument(help="grid | roundabout | y-split | parallel | tunnel | city")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output OSM XML file.")],
+    param: Annotated[
+        Optional[list[str]],
+        typer.Option(
+            "--param",
+            "-p",
+            help="Generator parameter KEY=VALUE, repeatable. grid: cols, rows, block_m; roundabout: radius_m, arm_m; "
+            "parallel: offset_m (6–10), length_m; tunnel: tunnel_m (≥ 600), bend_deg, bend_radius_m; "
+            "city: width_km (≤ 10), height_km (≤ 15), block_m, arterial_every.",
+        ),
+    ] = None,
+) -> None:
+    """Write a synthetic OSM map (valid OSM XML with real highway, lanes, oneway, tunnel, bridge, layer tags)."""
+    from . import synthetic
+
+    try:
+        k = synthetic.SyntheticKind(kind)
+    except ValueError:
+        _fail(f"unknown map kind {kind!r}; known: {', '.join(x.value for x in synthetic.SyntheticKind)}")
+    try:
+        params = _parse_params(param or [], synthetic._GENERATORS[k])
+        path = synthetic.write(k, out, **params)
+    except InputError as exc:
+        _fail(str(exc))
+    except OSError as exc:
+        _fail(f"{out}: cannot write ({exc.strerror})")
+    console.print(f"wrote {k.value} map to {path} ({path.stat().st_size:,} bytes)")
+
+
+@app.command()
+def demo(
+    map_name: Annotated[str, typer.Option("--map", help="Map to run on (built-in name or OSM file).")] = "helsinki",
+) -> None:
+    """The main job on the bundled Helsinki map.
+
+    Today it builds the road map and prints its statistics; the full drive (simulation, fusion,
+    table and plot) lands with the engine.
+    """
+    from .maps import resolve_map
+    from .roadmap import RoadMap
+
+    try:
+        path = resolve_map(map_name)
+        with err_console.status(f"building road map of {path.name} ..."):
+            road = RoadMap.from_osm(path)
+    except InputError as exc:
+        _fail(str(exc))
+    console.print(_stats_table(road.stats(), f"Road map: {path}"))
+
+
+@app.command()
+def bench(
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object per benchmark.")] = False,
+    queries: Annotated[int, typer.Option(help="Radius queries per map.", min=100)] = 20000,
+) -> None:
+    """Throughput benchmarks: road-map build and 20 m radius queries on Helsinki and a 10 km × 15 km city."""
+    from .bench import bench_roadmap, big_city_map
+    from .maps import resolve_map
+
+    results = []
+    with err_console.status("benchmarking road maps ..."):
+        for path in (resolve_map("helsinki"), big_city_map()):
+            results.append(bench_roadmap(path, n_queries=queries))
+    if as_json:
+        for r in results:
+            print(json.dumps(r.to_dict()))
+        return
+    t = Table(title="Road map benchmarks (one core)")
+    for col in ("map", "way-points", "build s", "20 m query median µs", "p90 µs", "hits/query"):
+        t.add_column(col, justify="right")
+    for r in results:
+        t.add_row(Path(r.map).name, f"{r.waypoints:,}", f"{r.build_s:.2f}", f"{r.query_median_us:.1f}",
+                  f"{r.query_p90_us:.1f}", f"{r.mean_hits:.0f}")
+    console.print(t)
+    console.print("targets: city build < 20 s, median query < 20 µs")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    try:
+        app()
+    except InputError as exc:  # any bad input a command did not catch itself
+        err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,520 @@
+"""The processed road map (paper III.A, DESIGN "The method" item 1).
+
+Drivable OSM ways are split at junctions into edges of a graph whose vertices are the
+junctions; every edge is interpolated into way-points about ``spacing_m`` apart, smoothed by a
+rolling average, and the joins between edges are rounded with short curves. Every way-point
+carries a heading (towards the next way-point; the last takes the previous one's), its OSM way
+and that way's lanes, width, oneway, tunnel, bridge and layer flags. A k-d tree answers radius
+queries. The processed map is cached on disk, keyed by the file's hash and the parameters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import ConfigError, MapFileError
+from .geometry import headings, process_polyline, quadratic_bezier, wrap_angle
+from .osm import DRIVABLE_HIGHWAYS, OsmWay, check_osm_path, read_drivable_ways
+from .projection import LocalProjection
+
+log = logging.getLogger(__name__)
+
+#: Bumped whenever the processed arrays change meaning, so stale caches are never read.
+CACHE_FORMAT = 3
+
+
+@dataclass(frozen=True)
+class RoadMapConfig:
+    """How an OSM file becomes a road map. Every field has a default; all lengths in metres."""
+
+    spacing_m: float = 1.0
+    """Way-point spacing after interpolation (paper III.A: "linearly interpolated"; 1 m, DESIGN item 1)."""
+    smoothing_window_m: float = 5.0
+    """Length of the rolling-average window. 5 m keeps every smoothed point within 1.2 m of the
+    raw polyline (half a 3 m lane) while rounding OSM's sharp vertices."""
+    lane_width_m: float = 3.0
+    """Width of one lane; road width = lanes × lane width (paper III.B: "approximated to be 3m per lane")."""
+    join_radius_m: float = 6.0
+    """How far back from a junction the rounded join between two edges starts (and ends)."""
+    join_min_turn_deg: float = 10.0
+    """Joins turning less than this are already smooth enough and get no extra curve."""
+    join_max_turn_deg: float = 150.0
+    """Joins turning more than this (near U-turns) get no curve: a car does not drive them."""
+    lane_overrides: tuple[tuple[int, int], ...] = ()
+    """(OSM way id, lanes) pairs that replace a way's lane count, like the paper's one fixed road."""
+    drivable_highways: tuple[str, ...] = DRIVABLE_HIGHWAYS
+    """OSM highway classes kept (see :data:`mapfusion.osm.DRIVABLE_HIGHWAYS`)."""
+    origin_lat_deg: float | None = None
+    """ENU origin latitude; None centres the projection on the map's bounding box."""
+    origin_lon_deg: float | None = None
+    """ENU origin longitude; None centres the projection on the map's bounding box."""
+
+    def __post_init__(self) -> None:
+        for name in ("spacing_m", "lane_width_m"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ConfigError(f"RoadMapConfig.{name} must be a positive number of metres, got {v!r}")
+        for name in ("smoothing_window_m", "join_radius_m"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ConfigError(f"RoadMapConfig.{name} must be >= 0 metres, got {v!r}")
+        if (self.origin_lat_deg is None) != (self.origin_lon_deg is None):
+            raise ConfigError("RoadMapConfig: give both origin_lat_deg and origin_lon_deg, or neither")
+        for way_id, lanes in self.lane_overrides:
+            if int(lanes) < 1:
+                raise ConfigError(f"RoadMapConfig.lane_overrides: way {way_id} needs at least 1 lane, got {lanes}")
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["lane_overrides"] = [list(p) for p in self.lane_overrides]
+        d["drivable_highways"] = list(self.drivable_highways)
+        return d
+
+
+@dataclass(frozen=True)
+class WayInfo:
+    """Metadata of one OSM way as the road map keeps it."""
+
+    way_id: int
+    name: str
+    highway: str
+    lanes: int
+    lanes_tagged: bool
+    oneway: bool
+    tunnel: bool
+    bridge: bool
+    layer: int
+    roundabout: bool
+
+
+@dataclass(frozen=True)
+class MapStats:
+    """Summary of a processed road map (``mapfusion maps build``)."""
+
+    source: str
+    ways: int
+    edges: int
+    junctions: int
+    vertices: int
+    waypoints: int
+    road_km: float
+    tunnel_km: float
+    mean_spacing_m: float
+    build_s: float
+    from_cache: bool
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def default_cache_dir() -> Path:
+    """``$MAPFUSION_CACHE`` or ``~/.cache/mapfusion``."""
+    env = os.environ.get("MAPFUSION_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "mapfusion"
+
+
+@dataclass
+class _Build:
+    """Arrays accumulated while building; turned into a RoadMap at the end."""
+
+    xy: list = field(default_factory=list)
+    yaw: list = field(default_factory=list)
+    s: list = field(default_factory=list)
+    way_index: list = field(default_factory=list)
+    edge: list = field(default_factory=list)
+
+
+class RoadMap:
+    """A processed road map in a local ENU frame (metres). See the module docstring.
+
+    Way-point arrays (length N): ``xy_m`` (N, 2), ``yaw_rad`` (heading towards the next
+    way-point), ``s_m`` (arc length along its edge or join curve), ``way_index`` (into
+    :attr:`ways`), ``edge`` (edge index, or -1 on a join curve), ``is_join``.
+    Graph arrays: ``vertex_xy_m`` (V, 2), ``vertex_node_id`` (V,), ``vertex_degree`` (V,);
+    ``edge_u``, ``edge_v``, ``edge_way_index``, ``edge_length_m``, ``edge_start``, ``edge_end``
+    (E,): edge e's way-points are ``edge_start[e]:edge_end[e]``.
+    """
+
+    def __init__(self, arrays: dict[str, np.ndarray], ways: list[WayInfo], meta: dict) -> None:
+        self.config = RoadMapConfig(
+            **{
+                **meta["config"],
+                "lane_overrides": tuple(tuple(p) for p in meta["config"]["lane_overrides"]),
+                "drivable_highways": tuple(meta["config"]["drivable_highways"]),
+            }
+        )
+        self.source = meta["source"]
+        self.build_s = float(meta["build_s"])
+        self.from_cache = bool(meta.get("from_cache", False))
+        self.projection = LocalProjection(meta["origin_lat_deg"], meta["origin_lon_deg"])
+        self.ways = ways
+        self.way_ids = np.array([w.way_id for w in ways], dtype=np.int64)
+        self._way_row = {int(w): i for i, w in enumerate(self.way_ids)}
+        self.way_lanes = np.array([w.lanes for w in ways], dtype=np.int16)
+
+        self.xy_m = arrays["xy_m"]
+        self.yaw_rad = arrays["yaw_rad"]
+        self.s_m = arrays["s_m"]
+        self.way_index = arrays["way_index"]
+        self.edge = arrays["edge"]
+        self.is_join = self.edge < 0
+        self.vertex_xy_m = arrays["vertex_xy_m"]
+        self.vertex_node_id = arrays["vertex_node_id"]
+        self.vertex_degree = arrays["vertex_degree"]
+        self.edge_u = arrays["edge_u"]
+        self.edge_v = arrays["edge_v"]
+        self.edge_way_index = arrays["edge_way_index"]
+        self.edge_length_m = arrays["edge_length_m"]
+        self.edge_start = arrays["edge_start"]
+        self.edge_end = arrays["edge_end"]
+        self.tree = cKDTree(self.xy_m, balanced_tree=False, compact_nodes=False)
+
+    # ----------------------------------------------------------------- construction
+    @classmethod
+    def from_osm(
+        cls,
+        path: str | Path,
+        config: RoadMapConfig | None = None,
+        *,
+        cache: bool = True,
+        cache_dir: Path | None = None,
+    ) -> RoadMap:
+        """Read, process and (by default) cache the road map of an OSM file.
+
+        Raises :class:`~mapfusion.errors.MapFileError` / :class:`~mapfusion.errors.MapContentError`
+        for unusable files.
+        """
+        cfg = config or RoadMapConfig()
+        p = check_osm_path(path)
+        cache_path = None
+        if cache:
+            key_src = json.dumps(
+                {"sha": file_sha256(p), "cfg": cfg.to_dict(), "fmt": CACHE_FORMAT}, sort_keys=True
+            )
+            key = hashlib.sha256(key_src.encode()).hexdigest()[:24]
+            cache_path = (cache_dir or default_cache_dir()) / f"roadmap-{key}.npz"
+            if cache_path.exists():
+                try:
+                    road = cls._load(cache_path, str(p))
+                    log.debug("road map of %s read from cache %s", p, cache_path)
+                    return road
+                except Exception as exc:  # a corrupt cache is rebuilt, never trusted
+                    log.warning("ignoring unreadable road-map cache %s: %s", cache_path, exc)
+        road = cls._build(p, cfg)
+        if cache_path is not None:
+            try:
+                road._save(cache_path)
+            except OSError as exc:
+                log.warning("could not write road-map cache %s: %s", cache_path, exc)
+        return road
+
+    @classmethod
+    def _build(cls, path: Path, cfg: RoadMapConfig) -> RoadMap:
+        t0 = time.perf_counter()
+        osm_ways = read_drivable_ways(path, cfg.drivable_highways)
+        overrides = {int(w): int(n) for w, n in cfg.lane_overrides}
+        ways = [
+            WayInfo(
+                way_id=w.way_id,
+                name=w.name,
+                highway=w.highway,
+                lanes=overrides.get(w.way_id, w.lanes or 1),
+                lanes_tagged=w.lanes is not None,
+                oneway=w.oneway,
+                tunnel=w.tunnel,
+                bridge=w.bridge,
+                layer=w.layer,
+                roundabout=w.roundabout,
+            )
+            for w in osm_ways
+        ]
+        lat = np.concatenate([w.lat_deg for w in osm_ways])
+        lon = np.concatenate([w.lon_deg for w in osm_ways])
+        if cfg.origin_lat_deg is None:
+            origin = (0.5 * (lat.min() + lat.max()), 0.5 * (lon.min() + lon.max()))
+        else:
+            origin = (cfg.origin_lat_deg, cfg.origin_lon_deg)
+        proj = LocalProjection(*origin)
+        x, y = proj.to_enu(lat, lon)
+        xy_all = np.column_stack([x, y])
+
+        arrays = _build_graph_and_points(osm_ways, xy_all, cfg)
+        meta = {
+            "config": cfg.to_dict(),
+            "source": str(path),
+            "origin_lat_deg": float(origin[0]),
+            "origin_lon_deg": float(origin[1]),
+            "build_s": time.perf_counter() - t0,
+        }
+        road = cls(arrays, ways, meta)
+        log.info("built road map of %s: %d way-points in %.2f s", path, len(road), road.build_s)
+        return road
+
+    def _save(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        meta = {
+            "config": self.config.to_dict(),
+            "source": self.source,
+            "origin_lat_deg": self.projection.origin_lat_deg,
+            "origin_lon_deg": self.projection.origin_lon_deg,
+            "build_s": self.build_s,
+            "ways": [dataclasses.asdict(w) for w in self.ways],
+        }
+        arrays = {k: getattr(self, k) for k in _ARRAY_NAMES}
+        tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+        np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays)
+        os.replace(tmp, path)  # atomic: parallel builders never see half a file
+
+    @classmethod
+    def _load(cls, path: Path, source: str) -> RoadMap:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            arrays = {k: z[k] for k in _ARRAY_NAMES}
+        ways = [WayInfo(**w) for w in meta.pop("ways")]
+        meta["source"] = source
+        meta["from_cache"] = True
+        return cls(arrays, ways, meta)
+
+    # ----------------------------------------------------------------- queries
+    def __len__(self) -> int:
+        return len(self.xy_m)
+
+    @property
+    def way_id(self) -> np.ndarray:
+        """OSM way id of every way-point (N,)."""
+        return self.way_ids[self.way_index]
+
+    @property
+    def lanes(self) -> np.ndarray:
+        """Lane count of every way-point's way (N,)."""
+        return self.way_lanes[self.way_index]
+
+    @property
+    def width_m(self) -> np.ndarray:
+        """Road width at every way-point: lanes × lane width (N,)."""
+        return self.lanes * self.config.lane_width_m
+
+    def way_flags(self, flag: str) -> np.ndarray:
+        """Per-way-point boolean flag of its way: 'oneway', 'tunnel', 'bridge' or 'roundabout'."""
+        per_way = np.array([getattr(w, flag) for w in self.ways], dtype=bool)
+        return per_way[self.way_index]
+
+    def way(self, way_id: int) -> WayInfo:
+        """Metadata of an OSM way; KeyError if the map does not hold it."""
+        return self.ways[self._way_row[int(way_id)]]
+
+    def has_way(self, way_id: int) -> bool:
+        return int(way_id) in self._way_row
+
+    def ways_named(self, name: str) -> list[WayInfo]:
+        """Every way whose OSM name equals ``name``."""
+        return [w for w in self.ways if w.name == name]
+
+    def waypoints_of_way(self, way_id: int) -> np.ndarray:
+        """Indices of the way-points on a way's edges (join curves excluded)."""
+        row = self._way_row[int(way_id)]
+        return np.flatnonzero((self.way_index == row) & ~self.is_join)
+
+    def query_radius(self, x_m: float, y_m: float, radius_m: float) -> np.ndarray:
+        """Indices of way-points within ``radius_m`` of (x, y), unsorted."""
+        return np.asarray(self.tree.query_ball_point((x_m, y_m), radius_m), dtype=np.intp)
+
+    def stats(self) -> MapStats:
+        """Counts and lengths of the processed map."""
+        tunnel_way = np.array([w.tunnel for w in self.ways], dtype=bool)
+        lengths = self.edge_length_m
+        spacing = np.hypot(*np.diff(self.xy_m, axis=0).T)
+        same_edge = (self.edge[1:] == self.edge[:-1]) & (self.edge[1:] >= 0)
+        return MapStats(
+            source=self.source,
+            ways=len(self.ways),
+            edges=len(self.edge_u),
+            junctions=int(np.sum(self.vertex_degree >= 3)),
+            vertices=len(self.vertex_degree),
+            waypoints=len(self),
+            road_km=float(lengths.sum() / 1000.0),
+            tunnel_km=float(lengths[tunnel_way[self.edge_way_index]].sum() / 1000.0),
+            mean_spacing_m=float(spacing[same_edge].mean()) if same_edge.any() else 0.0,
+            build_s=self.build_s,
+            from_cache=self.from_cache,
+        )
+
+
+_ARRAY_NAMES = (
+    "xy_m",
+    "yaw_rad",
+    "s_m",
+    "way_index",
+    "edge",
+    "vertex_xy_m",
+    "vertex_node_id",
+    "vertex_degree",
+    "edge_u",
+    "edge_v",
+    "edge_way_index",
+    "edge_length_m",
+    "edge_start",
+    "edge_end",
+)
+
+
+def _build_graph_and_points(osm_ways: list[OsmWay], xy_all: np.ndarray, cfg: RoadMapConfig) -> dict:
+    """Split ways at junctions, process each edge's polyline and round the joins."""
+    node_ids_all = np.concatenate([w.node_ids for w in osm_ways])
+    uniq, counts = np.unique(node_ids_all, return_counts=True)
+    shared = set(uniq[counts >= 2].tolist())
+
+    # -- split ways into edges at every node shared with another way (or itself) and at ends
+    vertex_of: dict[int, int] = {}
+    vertex_xy: list[np.ndarray] = []
+    edges_raw: list[tuple[int, int, int, np.ndarray]] = []  # (way_index, u, v, polyline)
+    offset = 0
+    for wi, w in enumerate(osm_ways):
+        n = len(w.node_ids)
+        pts = xy_all[offset : offset + n]
+        offset += n
+        cut = [0] + [i for i in range(1, n - 1) if int(w.node_ids[i]) in shared] + [n - 1]
+        for a, b in zip(cut[:-1], cut[1:]):
+            ends = []
+            for i in (a, b):
+                nid = int(w.node_ids[i])
+                if nid not in vertex_of:
+                    vertex_of[nid] = len(vertex_xy)
+                    vertex_xy.append(pts[i])
+                ends.append(vertex_of[nid])
+            if b > a:
+                edges_raw.append((wi, ends[0], ends[1], pts[a : b + 1]))
+
+    b = _Build()
+    edge_u, edge_v, edge_way, edge_len, edge_start, edge_end = [], [], [], [], [], []
+    count = 0
+    for e, (wi, u, v, poly) in enumerate(edges_raw):
+        pts, s, yaw = process_polyline(poly, cfg.spacing_m, cfg.smoothing_window_m)
+        if len(pts) < 2:  # a zero-length edge (duplicate nodes): no way-points, still an edge
+            pts, s, yaw = poly[:1], np.zeros(1), np.zeros(1)
+        b.xy.append(pts)
+        b.yaw.append(yaw)
+        b.s.append(s)
+        b.way_index.append(np.full(len(pts), wi, dtype=np.int32))
+        b.edge.append(np.full(len(pts), e, dtype=np.int32))
+        edge_u.append(u)
+        edge_v.append(v)
+        edge_way.append(wi)
+        edge_len.append(s[-1])
+        edge_start.append(count)
+        count += len(pts)
+        edge_end.append(count)
+
+    vertex_degree = np.zeros(len(vertex_xy), dtype=np.int32)
+    np.add.at(vertex_degree, np.asarray(edge_u, dtype=np.intp), 1)
+    np.add.at(vertex_degree, np.asarray(edge_v, dtype=np.intp), 1)
+
+    _add_join_curves(b, edge_u, edge_v, edge_way, edge_start, edge_end, vertex_degree, cfg)
+
+    vertex_node = np.empty(len(vertex_xy), dtype=np.int64)
+    for nid, vi in vertex_of.items():
+        vertex_node[vi] = nid
+    return {
+        "xy_m": np.concatenate(b.xy).astype(np.float64),
+        "yaw_rad": np.concatenate(b.yaw).astype(np.float64),
+        "s_m": np.concatenate(b.s).astype(np.float32),
+        "way_index": np.concatenate(b.way_index).astype(np.int32),
+        "edge": np.concatenate(b.edge).astype(np.int32),
+        "vertex_xy_m": np.asarray(vertex_xy, dtype=np.float64).reshape(-1, 2),
+        "vertex_node_id": vertex_node,
+        "vertex_degree": vertex_degree,
+        "edge_u": np.asarray(edge_u, dtype=np.int32),
+        "edge_v": np.asarray(edge_v, dtype=np.int32),
+        "edge_way_index": np.asarray(edge_way, dtype=np.int32),
+        "edge_length_m": np.asarray(edge_len, dtype=np.float64),
+        "edge_start": np.asarray(edge_start, dtype=np.int64),
+        "edge_end": np.asarray(edge_end, dtype=np.int64),
+    }
+
+
+def _add_join_curves(b: _Build, edge_u, edge_v, edge_way, edge_start, edge_end, degree, cfg) -> None:
+    """Round the join of every pair of edges meeting at a vertex with a Bézier curve.
+
+    The curve runs from ``join_radius_m`` back on one edge, through the corner, to
+    ``join_radius_m`` along the other; its first half belongs to the first edge's way, the
+    second half to the other's. Drawn once per unordered pair (both travel directions match it).
+    """
+    if cfg.join_radius_m <= 0:
+        return
+    xy_edges = b.xy  # per-edge arrays, in edge order
+    ends_at: dict[int, list[tuple[int, bool]]] = {}
+    for e, (u, v) in enumerate(zip(edge_u, edge_v)):
+        if edge_end[e] - edge_start[e] < 2:
+            continue
+        ends_at.setdefault(u, []).append((e, True))  # edge leaves the vertex at its start
+        ends_at.setdefault(v, []).append((e, False))  # edge arrives at the vertex at its end
+    min_turn = np.radians(cfg.join_min_turn_deg)
+    max_turn = np.radians(cfg.join_max_turn_deg)
+    n_curves = 0
+    for vertex, ends in ends_at.items():
+        if degree[vertex] < 2 or len(ends) < 2:
+            continue
+        # for each edge end: the point join_radius back along it, and the direction leaving the vertex
+        legs = []
+        for e, at_start in ends:
+            pts = xy_edges[e]
+            length = b.s[e][-1]
+            r = min(cfg.join_radius_m, 0.45 * length)
+            if r < cfg.spacing_m:
+                continue
+            dist = r if at_start else length - r
+            p = np.array([np.interp(dist, b.s[e], pts[:, 0]), np.interp(dist, b.s[e], pts[:, 1])])
+            corner = pts[0] if at_start else pts[-1]
+            d = p - corner
+            legs.append((e, p, corner, np.arctan2(d[1], d[0])))
+        for i in range(len(legs)):
+            for j in range(i + 1, len(legs)):
+                ei, pi, corner, ai = legs[i]
+                ej, pj, _, aj = legs[j]
+                # arriving along leg i (direction ai + pi) and leaving along leg j (direction aj)
+                turn = abs(float(wrap_angle(aj - (ai + np.pi))))
+                if turn < min_turn or turn > max_turn:
+                    continue
+                pts = quadratic_bezier(pi, corner, pj, cfg.spacing_m)
+                if len(pts) < 3:
+                    continue
+                half = len(pts) // 2
+                wi = np.empty(len(pts), dtype=np.int32)
+                wi[:half] = edge_way[ei]
+                wi[half:] = edge_way[ej]
+                seg = np.hypot(*np.diff(pts, axis=0).T)
+                b.xy.append(pts)
+                b.yaw.append(headings(pts))
+                b.s.append(np.concatenate(([0.0], np.cumsum(seg))))
+                b.way_index.append(wi)
+                b.edge.append(np.full(len(pts), -1, dtype=np.int32))
+                n_curves += 1
+    log.debug("added %d join curves", n_curves)
+
+
+def load_roadmap(path: str | Path, config: RoadMapConfig | None = None, **kw) -> RoadMap:
+    """:meth:`RoadMap.from_osm` under another name, resolving built-in map names first."""
+    from .maps import resolve_map
+
+    return RoadMap.from_osm(resolve_map(path), config, **kw)
+
+
+__all__ = ["RoadMap", "RoadMapConfig", "WayInfo", "MapStats", "MapFileError", "load_roadmap"]

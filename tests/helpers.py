@@ -1,0 +1,60 @@
+"""Shared helpers for the tests: synthetic trajectories, polylines and maps.
+
+Every test module that needs a synthetic road or trajectory takes it from here, so the shapes
+the tests reason about are defined once.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+from hypothesis import strategies as st
+
+from mapfusion.synthetic import OsmBuilder
+
+REPO = Path(__file__).resolve().parent.parent
+MAPS = REPO / "maps"
+
+
+@st.composite
+def polylines(draw, min_segments: int = 1, max_segments: int = 6, min_seg_m: float = 8.0,
+              max_seg_m: float = 150.0, max_turn_deg: float = 100.0) -> np.ndarray:
+    """A random road-like polyline (N, 2) in metres: segments of bounded length and turns."""
+    n = draw(st.integers(min_segments, max_segments))
+    heading = draw(st.floats(-math.pi, math.pi))
+    x0 = draw(st.floats(-5000, 5000))
+    y0 = draw(st.floats(-5000, 5000))
+    pts = [(x0, y0)]
+    for i in range(n):
+        if i:
+            heading += math.radians(draw(st.floats(-max_turn_deg, max_turn_deg)))
+        length = draw(st.floats(min_seg_m, max_seg_m))
+        x, y = pts[-1]
+        pts.append((x + length * math.cos(heading), y + length * math.sin(heading)))
+    return np.asarray(pts)
+
+
+def straight_road(length_m: float = 500.0, heading_rad: float = 0.0, origin=(0.0, 0.0)) -> np.ndarray:
+    """Two-point polyline of a straight road."""
+    d = np.array([math.cos(heading_rad), math.sin(heading_rad)])
+    o = np.asarray(origin, float)
+    return np.array([o, o + length_m * d])
+
+
+def circle_road(radius_m: float = 100.0, center=(0.0, 0.0), n: int = 72) -> np.ndarray:
+    """Closed polygonal circle (first point repeated at the end)."""
+    a = np.linspace(0, 2 * math.pi, n + 1)
+    return np.column_stack([center[0] + radius_m * np.cos(a), center[1] + radius_m * np.sin(a)])
+
+
+def write_osm(tmp_path: Path, roads: list[tuple[np.ndarray, dict]], name: str = "map.osm",
+              origin=(60.2, 24.9)) -> Path:
+    """Write roads (polyline, tags) as an OSM XML file and return its path."""
+    b = OsmBuilder(origin=origin)
+    for pts, tags in roads:
+        b.way([tuple(p) for p in pts], **tags)
+    p = tmp_path / name
+    p.write_text(b.to_xml())
+    return p
