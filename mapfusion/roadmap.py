@@ -185,6 +185,8 @@ class RoadMap:
         self.edge_length_m = arrays["edge_length_m"]
         self.edge_start = arrays["edge_start"]
         self.edge_end = arrays["edge_end"]
+        self.yaw_cos = np.cos(self.yaw_rad)
+        self.yaw_sin = np.sin(self.yaw_rad)
         self.tree = cKDTree(self.xy_m, balanced_tree=False, compact_nodes=False)
 
     # ----------------------------------------------------------------- construction
@@ -336,6 +338,29 @@ class RoadMap:
     def query_radius(self, x_m: float, y_m: float, radius_m: float) -> np.ndarray:
         """Indices of way-points within ``radius_m`` of (x, y), unsorted."""
         return np.asarray(self.tree.query_ball_point((x_m, y_m), radius_m), dtype=np.intp)
+
+    def match(
+        self,
+        x: float,
+        y: float,
+        yaw: float,
+        radius: float = 20.0,
+        angle_weight_m_per_deg: float = 1.0,
+        candidates: np.ndarray | None = None,
+    ):
+        """The closest map pose by D = E + w·A within ``radius`` metres, or None.
+
+        See :func:`mapfusion.matcher.match`; ``yaw`` in radians (ENU, 0 = east, CCW).
+        """
+        from .matcher import match
+
+        return match(self, x, y, yaw, radius, angle_weight_m_per_deg, candidates)
+
+    def match_many(self, x, y, yaw, radius: float = 20.0, angle_weight_m_per_deg: float = 1.0) -> dict:
+        """Vectorised :meth:`match` over arrays of poses (see :func:`mapfusion.matcher.match_many`)."""
+        from .matcher import match_many
+
+        return match_many(self, x, y, yaw, radius, angle_weight_m_per_deg)
 
     def stats(self) -> MapStats:
         """Counts and lengths of the processed map."""
