@@ -169,9 +169,8 @@ def test_no_nan_and_angle_in_range(x, y, yaw, w, radius):
     assert m.distance_m <= radius + 1e-9
 
 
-@given(a=finite, b=finite)
+@given(a=st.floats(-1e6, 1e6), b=st.floats(-1e6, 1e6))
 def test_angle_is_the_papers_quaternion_formula(a, b):
-    assume(abs(a) < 1e6 and abs(b) < 1e6)
     ours = float(angle_deg(a, b))
     q = lambda t: np.array([math.cos(t / 2), 0.0, 0.0, math.sin(t / 2)])  # noqa: E731
     paper = float(quaternion_angle_deg(q(a), q(b)))
