@@ -194,6 +194,45 @@ def maps_stress(
 
 
 @app.command()
+def simulate(
+    scenario: Annotated[Path, typer.Argument(help="Scenario TOML file (DESIGN 'Scenario files').")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+) -> None:
+    """Drive the scenario in SUMO and write the run directory: scenario.toml (resolved), truth.tum, truth.csv
+    (and fleet.csv in fleet mode)."""
+    # The engine never needs SUMO: the simulation is imported only by the commands that drive it.
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from sim.drive import run_drive
+    from sim.network import RouteError, SimulationError, build_network
+    from sim.rundir import write_truth
+    from sim.scenario import load_scenario
+
+    from .roadmap import RoadMap
+
+    try:
+        sc = load_scenario(scenario)
+        with err_console.status("building road map and SUMO network ..."):
+            road = RoadMap.from_osm(sc.map)
+            net = build_network(sc.map)
+        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
+                      TimeElapsedColumn(), console=err_console, transient=True, disable=not err_console.is_terminal) as bar:
+            task = bar.add_task(f"simulating {sc.name}", total=sc.duration_s)
+            drive = run_drive(sc, road, net, progress=lambda t, total: bar.update(task, completed=t))
+        write_truth(out, sc, drive)
+    except RouteError as exc:
+        _fail(f"{scenario}: {exc}")
+    except InputError as exc:
+        _fail(str(exc))
+    except SimulationError as exc:
+        _fail(f"{scenario}: {exc}", code=1)
+    console.print(
+        f"{sc.name}: {len(drive.ego):,} frames, {drive.ego.t_s[-1]:.1f} s simulated, {drive.ego.distance_m[-1]:,.0f} m driven "
+        f"(route {drive.route_length_m:,.0f} m), {drive.realtime_factor:,.0f}× real time → {out}"
+    )
+
+
+@app.command()
 def demo(
     map_name: Annotated[str, typer.Option("--map", help="Map to run on (built-in name or OSM file).")] = "helsinki",
 ) -> None:

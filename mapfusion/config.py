@@ -1,0 +1,207 @@
+"""Configuration: frozen dataclasses with documented defaults, strictly loaded from TOML tables.
+
+:func:`from_mapping` is the one loader: an unknown key, a wrong type or a value out of range is
+a :class:`~mapfusion.errors.ConfigError` naming the key and where it came from. Field metadata
+carries the documentation (``doc``), the unit and the allowed range (``min``/``max``, with
+``exclusive_min``), so the loader, the docs and the CLI agree.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import ConfigError
+
+
+def param(default: Any, doc: str, *, unit: str = "", min: float | None = None, max: float | None = None,
+          exclusive_min: bool = False, source: str = "") -> Any:
+    """A dataclass field with documentation, unit, range and source."""
+    return field(default=default, metadata={"doc": doc, "unit": unit, "min": min, "max": max,
+                                            "exclusive_min": exclusive_min, "source": source})
+
+
+def _type_name(tp) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _convert(value: Any, tp: Any, key: str, where: str) -> Any:
+    """Check (and lightly convert: int → float, list → tuple, str → Enum) one value."""
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(tp) if a is not type(None)]
+        if value is None:
+            return None
+        return _convert(value, args[0], key, where)
+    if isinstance(tp, type) and issubclass(tp, enum.Enum):
+        try:
+            return tp(value)
+        except ValueError:
+            choices = ", ".join(str(m.value) for m in tp)
+            raise ConfigError(f"{where}: {key} = {value!r} is not one of {choices}") from None
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: {key} must be true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: {key} must be a whole number, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: {key} must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{where}: {key} must be finite, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: {key} must be a string, got {value!r}")
+        return value
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: {key} must be a list, got {value!r}")
+        args = typing.get_args(tp)
+        item_tp = args[0] if args else Any
+        return tuple(_convert(v, item_tp, f"{key}[{i}]", where) for i, v in enumerate(value))
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{where}: [{key}] must be a table, got {value!r}")
+        return from_mapping(tp, value, where, prefix=f"{key}.")
+    if tp is Any:
+        return value
+    raise ConfigError(f"{where}: {key}: unsupported type {_type_name(tp)}")
+
+
+def _check_range(f: dataclasses.Field, value: Any, key: str, where: str) -> None:
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return
+    lo, hi = f.metadata.get("min"), f.metadata.get("max")
+    unit = f.metadata.get("unit") or ""
+    if lo is not None:
+        if f.metadata.get("exclusive_min") and not value > lo:
+            raise ConfigError(f"{where}: {key} must be > {lo:g}{' ' + unit if unit else ''}, got {value!r}")
+        if not value >= lo:
+            raise ConfigError(f"{where}: {key} must be ≥ {lo:g}{' ' + unit if unit else ''}, got {value!r}")
+    if hi is not None and not value <= hi:
+        raise ConfigError(f"{where}: {key} must be ≤ {hi:g}{' ' + unit if unit else ''}, got {value!r}")
+
+
+def from_mapping(cls: type, data: dict, where: str = "config", prefix: str = ""):
+    """Build the frozen dataclass ``cls`` from a TOML table, strictly.
+
+    ``where`` names the source (a file) in error messages; ``prefix`` the table (``gps.``).
+    """
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: [{prefix.rstrip('.')}] must be a table")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown key {prefix}{unknown[0]!s} (known in this table: {', '.join(sorted(fields))})"
+        )
+    kwargs = {}
+    for name, value in data.items():
+        f = fields[name]
+        v = _convert(value, hints[name], prefix + name, where)
+        _check_range(f, v, prefix + name, where)
+        kwargs[name] = v
+    try:
+        return cls(**kwargs)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+def to_mapping(obj) -> dict:
+    """A frozen config dataclass as plain TOML-ready values (Enums by value, tuples as lists, no None)."""
+    out = {}
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if v is None:
+            continue
+        out[f.name] = _plain(v)
+    return out
+
+
+def _plain(v):
+    if dataclasses.is_dataclass(v):
+        return to_mapping(v)
+    if isinstance(v, enum.Enum):
+        return v.value
+    if isinstance(v, (tuple, list)):
+        return [_plain(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items() if x is not None}
+    if isinstance(v, Path):
+        return str(v)
+    return v
+
+
+def describe(cls: type) -> list[tuple[str, str, Any, str, str]]:
+    """(name, type, default, unit, doc) of every field: for docs and ``--help`` texts."""
+    hints = typing.get_type_hints(cls)
+    rows = []
+    for f in dataclasses.fields(cls):
+        default = f.default if f.default is not dataclasses.MISSING else None
+        rows.append((f.name, _type_name(hints[f.name]), _plain(default), f.metadata.get("unit", ""), f.metadata.get("doc", "")))
+    return rows
+
+
+# ----------------------------------------------------------------------------- engine configuration
+class Backend(str, enum.Enum):
+    """Factor-graph backends (DESIGN item 6)."""
+
+    fixed_lag = "fixed_lag"  # bounded cost per frame: the default for long drives
+    isam2 = "isam2"  # ISAM2 over the whole history, as the paper
+
+
+class ScaleFormula(str, enum.Enum):
+    """How the odometry scale is estimated from GPS (DESIGN item 4)."""
+
+    speed_ratio = "speed_ratio"  # (‖d_gps‖/t_gps) / (‖d_vo‖/t_vo): the default
+    paper = "paper"  # the paper's printed S = ‖d_gps‖²/‖d_vo‖² · t_vo/t_gps
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Parameters of the Map-Fusion engine; the ``[mapfusion]`` table of a scenario file."""
+
+    lane_width_m: float = param(3.0, "Width of one lane; road width = lanes × lane width.", unit="m", min=0.5, max=10.0,
+                                source="paper III.B ('approximated to be 3m per lane')")
+    yaw_sigma_deg: float = param(10.0, "Standard deviation of the map prior's yaw.", unit="deg", min=0.1, max=180.0,
+                                 source="paper III.B ('empirically set as 10 degrees')")
+    angle_weight_m_per_deg: float = param(1.0, "Weight w of the angle in D = E + w·A.", unit="m/deg", min=0.0, max=100.0,
+                                          source="paper III.B ('each degree difference corresponds to 1m')")
+    search_radius_m: float = param(20.0, "Radius around the predicted pose searched for map way-points.", unit="m",
+                                   min=0.0, exclusive_min=True, max=500.0, source="paper IV.B ('within a 20m radius')")
+    scale_min_distance_m: float = param(20.0, "md: distance the GPS must cover before a scale sample is taken.",
+                                        unit="m", min=0.0, exclusive_min=True, source="paper III.C (md); value by measurement")
+    scale_min_speed_kmh: float = param(10.0, "ms: minimum average speed for a scale sample.", unit="km/h",
+                                       min=0.0, exclusive_min=True, source="paper III.C (ms); value by measurement")
+    scale_samples: int = param(50, "Scale samples whose median is the scale.", min=1, max=10000,
+                               source="paper III.C ('50 samples were sufficient')")
+    scale_formula: ScaleFormula = param(ScaleFormula.speed_ratio, "Scale estimator: speed_ratio or paper (the printed form).",
+                                        source="DESIGN item 4")
+    odometry_sigma_before_init_m: float = param(10.0, "Translation σ of an odometry step before scale initialisation.",
+                                                unit="m", min=0.0, exclusive_min=True, source="paper IV.B ('highly uncertain')")
+    odometry_sigma_after_init_m: float = param(0.05, "Translation σ of an odometry step after scale initialisation.",
+                                               unit="m", min=0.0, exclusive_min=True, source="paper IV.B; value by measurement")
+    odometry_rot_sigma_deg: float = param(0.5, "Rotation σ of an odometry step after initialisation.", unit="deg",
+                                          min=0.0, exclusive_min=True, source="value by measurement")
+    gps_sigma_m: float = param(2.0, "σ of a GPS position factor when the fix carries none.", unit="m",
+                               min=0.0, exclusive_min=True, source="paper IV.B ('set to a predefined value')")
+    gps_gate_sigma: float = param(5.0, "Mahalanobis gate: fixes farther than this many σ are rejected.",
+                                  min=0.0, exclusive_min=True, source="robustness (issue 6)")
+    backend: Backend = param(Backend.fixed_lag, "fixed_lag (bounded cost, default) or isam2 (whole history, as the paper).",
+                             source="DESIGN item 6")
+    lag_s: float = param(10.0, "Window of the fixed-lag smoother.", unit="s", min=0.0, exclusive_min=True,
+                         source="value by measurement")
+    delocalization_m: float = param(20.0, "ATE above which a run counts as de-localised.", unit="m",
+                                    min=0.0, exclusive_min=True, source="paper IV.B ('widest road observed')")
+    use_map: bool = param(True, "Add map priors; false gives the odometry baseline (same GPS use).", source="paper IV.B")

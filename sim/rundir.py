@@ -1,0 +1,56 @@
+"""Writing a run directory (DESIGN "File formats", contract): scenario.toml, truth.tum, truth.csv."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+from mapfusion.formats import write_tum, yaw_to_quaternion
+
+from .drive import DriveResult, Track
+from .scenario import Scenario
+
+#: truth.csv columns: the contract's first, then this test bed's additions at the end.
+TRUTH_COLUMNS = ("t", "x", "y", "z", "yaw", "speed", "lat", "lon", "sumo_edge", "osm_way", "in_tunnel",
+                 "sumo_lane", "distance_m", "sumo_speed")
+
+
+def _rows(track: Track, vehicle_column: bool = False):
+    for i in range(len(track)):
+        row = [
+            f"{track.t_s[i]:.3f}", f"{track.x_m[i]:.4f}", f"{track.y_m[i]:.4f}", f"{track.z_m[i]:.4f}",
+            f"{track.yaw_rad[i]:.6f}", f"{track.speed_mps[i]:.4f}", f"{track.lat_deg[i]:.9f}",
+            f"{track.lon_deg[i]:.9f}", track.sumo_edge[i],
+            "" if track.osm_way[i] < 0 else str(int(track.osm_way[i])),
+            "1" if track.in_tunnel[i] else "0", track.sumo_lane[i], f"{track.distance_m[i]:.3f}",
+            f"{track.sumo_speed_mps[i]:.4f}",
+        ]
+        yield ([track.vehicle] + row) if vehicle_column else row
+
+
+def write_truth(run_dir: str | Path, sc: Scenario, drive: DriveResult) -> Path:
+    """Write ``scenario.toml`` (fully resolved), ``truth.tum``, ``truth.csv`` and, in fleet mode,
+    ``fleet.csv`` (one row per vehicle and step), plus ``drive.json`` (route and timing)."""
+    d = Path(run_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "scenario.toml").write_text(sc.to_toml())
+    ego = drive.ego
+    xyz = [(x, y, z) for x, y, z in zip(ego.x_m, ego.y_m, ego.z_m)]
+    write_tum(d / "truth.tum", ego.t_s, xyz, yaw_to_quaternion(ego.yaw_rad),
+              header=f"ground truth of {sc.name} (SUMO, map ENU frame)")
+    with open(d / "truth.csv", "w", newline="") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(TRUTH_COLUMNS)
+        w.writerows(_rows(ego))
+    if drive.fleet:
+        with open(d / "fleet.csv", "w", newline="") as f:
+            w = csv.writer(f, lineterminator="\n")
+            w.writerow(("vehicle",) + TRUTH_COLUMNS)
+            for track in drive.fleet.values():
+                w.writerows(_rows(track, vehicle_column=True))
+    info = {"route_edges": drive.route_edges, "route_length_m": drive.route_length_m, "frames": len(ego),
+            "duration_s": float(ego.t_s[-1] - ego.t_s[0]) if len(ego) else 0.0,
+            "driven_m": float(ego.distance_m[-1]) if len(ego) else 0.0, "vehicles": drive.vehicles}
+    (d / "drive.json").write_text(json.dumps(info, indent=2) + "\n")
+    return d

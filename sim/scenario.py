@@ -1,0 +1,301 @@
+"""Scenario and family files (DESIGN "Scenario files", contract).
+
+A scenario is one drive, a TOML file whose every key has a documented default; an unknown key,
+a wrong type or a value out of range is a :class:`ScenarioError` naming the key and the file. A
+family is a base scenario, axes (a dotted key → list of values) and seeds, expanded to the
+cartesian product; a plain scenario file is a family of one.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import enum
+import itertools
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from mapfusion.config import FusionConfig, from_mapping, param, to_mapping
+from mapfusion.errors import ConfigError, InputError
+from mapfusion.maps import resolve_map
+
+
+class ScenarioError(ConfigError):
+    """A scenario or family file is unusable (names the file and the key)."""
+
+
+class WeatherKind(str, enum.Enum):
+    """Weather presets of the odometry error model."""
+
+    clear = "clear"
+    rain = "rain"
+    heavy_rain = "heavy_rain"
+
+
+class OdometryKind(str, enum.Enum):
+    """The two odometry baselines of the paper."""
+
+    vo = "vo"  # stereo visual odometry, DROID-SLAM-like
+    vio = "vio"  # stereo visual-inertial odometry, ORB-SLAM3-like
+
+
+class GpsMode(str, enum.Enum):
+    """When GPS fixes are available to the engine."""
+
+    init_only = "init_only"  # only during the initialisation window (KITTI, Oxford protocol)
+    interval = "interval"  # one fix every interval_s (4Seasons, Singapore protocol)
+    continuous = "continuous"  # at rate_hz throughout
+
+
+@dataclass(frozen=True)
+class TrafficConfig:
+    """``[traffic]``: other vehicles sharing the road with the ego vehicle."""
+
+    background_vehicles: int = param(0, "Other vehicles on random routes, so the ego slows and stops as in real traffic.",
+                                     min=0, max=5000)
+    fleet: bool = param(False, "Record every vehicle each step (fleet mode), not only the ego.")
+    depart_spread_s: float = param(60.0, "Background vehicles depart uniformly over this many seconds.", unit="s", min=0.0)
+
+
+@dataclass(frozen=True)
+class RouteConfig:
+    """``[route]``: the ego's route. Empty ``edges`` draws a seeded random route of at least ``min_route_m``."""
+
+    edges: tuple[str, ...] = param((), "SUMO edge ids the route passes, in order (joined by shortest paths).")
+    max_trips: int = param(50, "Random trips chained at most to reach min_route_m.", min=1, max=1000)
+
+
+@dataclass(frozen=True)
+class WeatherConfig:
+    """``[weather]``."""
+
+    kind: WeatherKind = param(WeatherKind.clear, "clear | rain | heavy_rain: presets of the odometry error model.")
+
+
+@dataclass(frozen=True)
+class GpsConfig:
+    """``[gps]``: the GPS receiver."""
+
+    mode: GpsMode = param(GpsMode.init_only, "init_only | interval | continuous.")
+    interval_s: float = param(5.0, "Period of fixes in interval mode.", unit="s", min=0.0, exclusive_min=True,
+                              source="paper IV.B ('GPS every 5 seconds')")
+    rate_hz: float = param(1.0, "Fix rate in continuous mode and during initialisation.", unit="Hz", min=0.0,
+                           exclusive_min=True, max=100.0)
+    sigma_m: float = param(2.0, "Horizontal σ of a fix (per axis).", unit="m", min=0.0, max=100.0)
+    init_window_s: float = param(60.0, "Length of the initialisation window in init_only mode.", unit="s", min=0.0)
+    outlier_probability: float = param(0.01, "Probability that a fix is a multipath outlier.", min=0.0, max=1.0)
+    outlier_sigma_m: float = param(30.0, "σ of a multipath outlier's error (per axis).", unit="m", min=0.0)
+    deny_in_tunnels: bool = param(True, "No fix on OSM tunnel=yes / covered roads, nor in the [[tunnels]] zones.")
+    deny_under_bridges: bool = param(True, "No fix while passing under a bridge (another road above, layer > own).")
+
+
+@dataclass(frozen=True)
+class TunnelZone:
+    """``[[tunnels]]``: a GPS-denied, visually degraded zone by distance along the route."""
+
+    start_m: float = param(0.0, "Start of the zone, distance along the route.", unit="m", min=0.0)
+    end_m: float = param(0.0, "End of the zone, distance along the route.", unit="m", min=0.0)
+
+    def __post_init__(self) -> None:
+        if not self.end_m > self.start_m:
+            raise ConfigError(f"tunnels: end_m ({self.end_m}) must be greater than start_m ({self.start_m})")
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    """``[odometry]``: the odometry kind; ``overrides`` (any other key of the table) replace
+    fields of the kind × weather preset (see ``sim.sensors.OdometryParams``)."""
+
+    kind: OdometryKind = param(OdometryKind.vo, "vo (stereo VO) | vio (stereo VIO).")
+    overrides: tuple[tuple[str, float], ...] = param((), "Preset fields replaced by the scenario.")
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One drive: map, seed, timing, traffic, weather, sensors, GPS-denied zones and engine parameters."""
+
+    name: str = param("scenario", "Name of the run (used for its directory and in tables).")
+    map: str = param("helsinki", "OSM file: built-in name, path relative to the scenario file, or absolute.")
+    seed: int = param(1, "Seed of everything random in the run (route, traffic, sensors).", min=0, max=2**31 - 1)
+    duration_s: float = param(600.0, "Upper bound on simulated time.", unit="s", min=0.0, exclusive_min=True, max=86400.0)
+    step_s: float = param(0.1, "SUMO step = odometry frame period.", unit="s", min=0.01, max=1.0)
+    min_route_m: float = param(1500.0, "Minimum length of a random route.", unit="m", min=0.0, max=200000.0)
+    traffic: TrafficConfig = param(TrafficConfig(), "[traffic]")
+    route: RouteConfig = param(RouteConfig(), "[route]")
+    weather: WeatherConfig = param(WeatherConfig(), "[weather]")
+    odometry: OdometryConfig = param(OdometryConfig(), "[odometry]")
+    gps: GpsConfig = param(GpsConfig(), "[gps]")
+    tunnels: tuple[TunnelZone, ...] = param((), "[[tunnels]]")
+    mapfusion: FusionConfig = param(FusionConfig(), "[mapfusion]")
+
+    def to_toml_dict(self) -> dict:
+        """The fully resolved scenario as a TOML-ready mapping (``scenario.toml`` of a run)."""
+        d = to_mapping(self)
+        odo = d.pop("odometry")
+        d["odometry"] = {"kind": odo["kind"], **{k: v for k, v in odo.get("overrides", [])}}
+        d["tunnels"] = [to_mapping(z) for z in self.tunnels]
+        if not d["tunnels"]:
+            del d["tunnels"]
+        return d
+
+    def to_toml(self) -> str:
+        return tomli_w.dumps(self.to_toml_dict())
+
+    def replace(self, **changes) -> Scenario:
+        return dataclasses.replace(self, **changes)
+
+
+_SECTIONS = {"traffic": TrafficConfig, "route": RouteConfig, "weather": WeatherConfig, "gps": GpsConfig,
+             "mapfusion": FusionConfig}
+
+
+def scenario_from_dict(data: dict, where: str, base_dir: Path | None = None, resolve: bool = True) -> Scenario:
+    """A :class:`Scenario` from a TOML mapping; ``where`` names the source in errors.
+
+    With ``resolve`` the map is resolved now (built-in name, relative to ``base_dir``, or absolute),
+    so a missing map is reported before any simulation starts.
+    """
+    data = copy.deepcopy(data)
+    top_fields = {f.name for f in dataclasses.fields(Scenario)}
+    unknown = sorted(set(data) - top_fields)
+    if unknown:
+        raise ScenarioError(f"{where}: unknown key {unknown[0]} (known: {', '.join(sorted(top_fields))})")
+    kwargs: dict[str, Any] = {}
+    for key, cls in _SECTIONS.items():
+        if key in data:
+            kwargs[key] = from_mapping(cls, data.pop(key), where, prefix=f"{key}.")
+    if "odometry" in data:
+        odo = data.pop("odometry")
+        if not isinstance(odo, dict):
+            raise ScenarioError(f"{where}: [odometry] must be a table")
+        kind = odo.pop("kind", OdometryKind.vo.value)
+        base = from_mapping(OdometryConfig, {"kind": kind}, where, prefix="odometry.")
+        kwargs["odometry"] = dataclasses.replace(base, overrides=_odometry_overrides(odo, where))
+    if "tunnels" in data:
+        zones = data.pop("tunnels")
+        if not isinstance(zones, list):
+            raise ScenarioError(f"{where}: tunnels must be an array of tables ([[tunnels]])")
+        kwargs["tunnels"] = tuple(from_mapping(TunnelZone, z, where, prefix=f"tunnels[{i}].") for i, z in enumerate(zones))
+    top = from_mapping(Scenario, data, where) if data else Scenario()
+    sc = dataclasses.replace(top, **kwargs)
+    if resolve:
+        try:
+            sc = dataclasses.replace(sc, map=str(resolve_map(sc.map, base_dir).resolve()))
+        except InputError as exc:
+            raise ScenarioError(f"{where}: map: {exc}") from None
+    return sc
+
+
+def _odometry_overrides(table: dict, where: str) -> tuple[tuple[str, float], ...]:
+    from .sensors import OdometryParams
+
+    known = {f.name for f in dataclasses.fields(OdometryParams)}
+    out = []
+    for k, v in sorted(table.items()):
+        if k not in known:
+            raise ScenarioError(f"{where}: unknown key odometry.{k} (preset fields: {', '.join(sorted(known))})")
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ScenarioError(f"{where}: odometry.{k} must be a number, got {v!r}")
+        if v < 0:
+            raise ScenarioError(f"{where}: odometry.{k} must be ≥ 0, got {v!r}")
+        out.append((k, float(v)))
+    return tuple(out)
+
+
+def _read_toml(path: Path) -> dict:
+    if not path.exists():
+        raise ScenarioError(f"{path}: no such scenario file")
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{path}: not valid TOML ({exc})") from None
+    except OSError as exc:
+        raise ScenarioError(f"{path}: cannot read ({exc.strerror})") from None
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """One scenario file (not a family)."""
+    p = Path(path)
+    data = _read_toml(p)
+    if "family" in data:
+        raise ScenarioError(f"{p}: is a family file; use load_family")
+    return scenario_from_dict(data, str(p), p.parent)
+
+
+@dataclass(frozen=True)
+class Family:
+    """A named set of scenarios (the expansion of base × axes × seeds)."""
+
+    name: str
+    scenarios: tuple[Scenario, ...]
+    source: str
+
+
+def _set_dotted(d: dict, dotted: str, value: Any) -> None:
+    parts = dotted.split(".")
+    for p in parts[:-1]:
+        d = d.setdefault(p, {})
+        if not isinstance(d, dict):
+            raise ScenarioError(f"axis {dotted}: {p} is not a table")
+    d[parts[-1]] = value
+
+
+def _slug(v: Any) -> str:
+    return str(v).replace("/", "-").replace(" ", "").replace(".osm.pbf", "").replace(".osm", "")
+
+
+def expand_family(data: dict, where: str, base_dir: Path | None = None) -> Family:
+    """Expand a family mapping ([family] name, seeds, axes; [base]) into its scenarios."""
+    fam = data.get("family")
+    if not isinstance(fam, dict):
+        raise ScenarioError(f"{where}: [family] must be a table")
+    unknown = sorted(set(data) - {"family", "base"})
+    if unknown:
+        raise ScenarioError(f"{where}: unknown key {unknown[0]} in a family file (known: family, base)")
+    unknown = sorted(set(fam) - {"name", "seeds", "axes"})
+    if unknown:
+        raise ScenarioError(f"{where}: unknown key family.{unknown[0]} (known: name, seeds, axes)")
+    name = fam.get("name")
+    if not isinstance(name, str) or not name:
+        raise ScenarioError(f"{where}: family.name must be a non-empty string")
+    seeds = fam.get("seeds", [1])
+    if not isinstance(seeds, list) or not seeds or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in seeds):
+        raise ScenarioError(f"{where}: family.seeds must be a non-empty list of whole numbers ≥ 0")
+    axes = fam.get("axes", {})
+    if not isinstance(axes, dict) or not all(isinstance(v, list) and v for v in axes.values()):
+        raise ScenarioError(f"{where}: family.axes must map dotted keys to non-empty lists")
+    base = data.get("base", {})
+    if not isinstance(base, dict):
+        raise ScenarioError(f"{where}: [base] must be a table")
+    keys = list(axes)
+    scenarios = []
+    seen = set()
+    for combo in itertools.product(*(axes[k] for k in keys)):
+        for seed in seeds:
+            d = copy.deepcopy(base)
+            for k, v in zip(keys, combo):
+                _set_dotted(d, k, v)
+            d["seed"] = seed
+            parts = [name] + [_slug(v) for v in combo] + [f"s{seed}"]
+            d["name"] = "-".join(parts)
+            sc = scenario_from_dict(d, f"{where} ({d['name']})", base_dir)
+            if sc.name in seen:
+                raise ScenarioError(f"{where}: two runs would be named {sc.name}")
+            seen.add(sc.name)
+            scenarios.append(sc)
+    return Family(name=name, scenarios=tuple(scenarios), source=where)
+
+
+def load_family(path: str | Path) -> Family:
+    """A family file, or a scenario file as a family of one."""
+    p = Path(path)
+    data = _read_toml(p)
+    if "family" not in data:
+        sc = scenario_from_dict(data, str(p), p.parent)
+        return Family(name=sc.name, scenarios=(sc,), source=str(p))
+    return expand_family(data, str(p), p.parent)
