@@ -257,6 +257,7 @@ def demo(
 def bench(
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object per benchmark.")] = False,
     queries: Annotated[int, typer.Option(help="Radius queries per map.", min=100)] = 20000,
+    sim: Annotated[bool, typer.Option("--sim", help="Also time SUMO on Helsinki: ego alone and with 200 vehicles.")] = False,
 ) -> None:
     """Throughput benchmarks on Helsinki and a 10 km × 15 km city: road-map build, 20 m radius
     queries, and matches per second (batch and single calls), one core."""
@@ -269,10 +270,23 @@ def bench(
         for path in (resolve_map("helsinki"), big_city_map()):
             results.append(bench_roadmap(path, n_queries=queries))
             matches.append(bench_match(RoadMap.from_osm(path)))
+    sims = []
+    if sim:
+        from sim.bench import bench_sim
+
+        with err_console.status("timing SUMO drives (600 s simulated each) ..."):
+            sims = [bench_sim(n, fleet) for n, fleet in ((0, False), (200, False), (200, True))]
     if as_json:
-        for r in results + matches:
+        for r in results + matches + sims:
             print(json.dumps(r.to_dict()))
         return
+    if sims:
+        ts = Table(title="SUMO on Helsinki (600 s simulated, route planning included)")
+        for col in ("vehicles", "recorded", "wall s", "simulated s per wall s"):
+            ts.add_column(col, justify="right")
+        for b in sims:
+            ts.add_row(str(b.vehicles), "all (fleet)" if b.fleet else "ego", f"{b.wall_s:.2f}", f"{b.realtime_factor:,.0f}")
+        console.print(ts)
     t = Table(title="Road map and matcher benchmarks (one core)")
     for col in ("map", "way-points", "build s", "20 m query median µs", "p90 µs", "matches/s batch", "matches/s single"):
         t.add_column(col, justify="right")

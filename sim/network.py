@@ -182,6 +182,12 @@ def _parse_net(path: Path) -> tuple[dict[str, EdgeInfo], str, tuple[float, float
     return edges, proj, offset
 
 
+def run_netconvert(args: list[str]) -> subprocess.CompletedProcess:
+    """Run the wheel's netconvert with SUMO_HOME and PROJ's data pointed at the wheel."""
+    env = ensure_sumo_env()
+    return subprocess.run([str(sumo_home() / "bin" / "netconvert"), *args], capture_output=True, text=True, env=env)
+
+
 def build_network(osm_path: str | Path, cache_dir: Path | None = None, extra_options: tuple[str, ...] = ()) -> Network:
     """The SUMO network of an OSM file, built with netconvert (cached by file hash and options)."""
     src = check_osm_path(osm_path)
@@ -193,13 +199,11 @@ def build_network(osm_path: str | Path, cache_dir: Path | None = None, extra_opt
     cache = (cache_dir or default_cache_dir()) / f"net-{key}.net.xml"
     if not cache.exists():
         cache.parent.mkdir(parents=True, exist_ok=True)
-        env = ensure_sumo_env()
         with tempfile.TemporaryDirectory(prefix="mapfusion-net-") as tmp:
             xml = _as_osm_xml(src, Path(tmp))
             out = cache.with_name(f"{cache.name}.{os.getpid()}.tmp")
-            cmd = [str(sumo_home() / "bin" / "netconvert"), "--osm-files", str(xml), "--output-file", str(out), *opts]
             log.info("netconvert %s", src)
-            proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+            proc = run_netconvert(["--osm-files", str(xml), "--output-file", str(out), *opts])
             if proc.returncode != 0 or not out.exists():
                 out.unlink(missing_ok=True)
                 lines = (proc.stderr or proc.stdout).strip().splitlines()

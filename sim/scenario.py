@@ -157,8 +157,17 @@ def scenario_from_dict(data: dict, where: str, base_dir: Path | None = None, res
     """A :class:`Scenario` from a TOML mapping; ``where`` names the source in errors.
 
     With ``resolve`` the map is resolved now (built-in name, relative to ``base_dir``, or absolute),
-    so a missing map is reported before any simulation starts.
+    so a missing map is reported before any simulation starts. Raises :class:`ScenarioError`.
     """
+    try:
+        return _scenario_from_dict(data, where, base_dir, resolve)
+    except ScenarioError:
+        raise
+    except ConfigError as exc:
+        raise ScenarioError(str(exc)) from None
+
+
+def _scenario_from_dict(data: dict, where: str, base_dir: Path | None, resolve: bool) -> Scenario:
     data = copy.deepcopy(data)
     top_fields = {f.name for f in dataclasses.fields(Scenario)}
     unknown = sorted(set(data) - top_fields)

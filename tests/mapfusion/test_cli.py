@@ -70,3 +70,35 @@ def test_help_on_every_command():
     for args in (["--help"], ["maps", "--help"], ["maps", "build", "--help"], ["maps", "generate", "--help"], ["demo", "--help"]):
         r = runner.invoke(app, args)
         assert r.exit_code == 0 and "Usage" in r.stdout
+
+
+@pytest.mark.sumo
+def test_simulate_writes_the_run_directory(tmp_path):
+    sc = tmp_path / "s.toml"
+    sc.write_text('name = "cli"\nmap = "grid"\nseed = 2\nduration_s = 60.0\nmin_route_m = 500.0\n')
+    out = tmp_path / "run"
+    r = runner.invoke(app, ["simulate", str(sc), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    for f in ("scenario.toml", "truth.tum", "truth.csv", "drive.json"):
+        assert (out / f).stat().st_size > 0
+    header = (out / "truth.csv").read_text().splitlines()[0].split(",")
+    assert header[:11] == ["t", "x", "y", "z", "yaw", "speed", "lat", "lon", "sumo_edge", "osm_way", "in_tunnel"]
+    assert "/maps/synthetic/grid.osm" in (out / "scenario.toml").read_text()  # fully resolved
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize(
+    "text,needle",
+    [
+        ('map = "grid"\n[gps]\nsigmaa_m = 3\n', "gps.sigmaa_m"),
+        ('map = "atlantis.osm"\n', "atlantis.osm"),
+        ('map = "grid"\n[route]\nedges = ["nope"]\n', "nope"),
+        ('map = "y-split"\nmin_route_m = 150000.0\n[route]\nmax_trips = 3\n', "no route"),
+    ],
+)
+def test_simulate_bad_input_exits_2(tmp_path, text, needle):
+    sc = tmp_path / "bad.toml"
+    sc.write_text(text)
+    r = runner.invoke(app, ["simulate", str(sc), "--out", str(tmp_path / "r")])
+    assert r.exit_code == 2, r.output
+    assert needle in r.stderr and len(r.stderr.strip().splitlines()) == 1

@@ -1,0 +1,172 @@
+"""Scenario and family files: defaults, strict validation, expansion, resolved round trip."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from mapfusion.config import FusionConfig, describe
+from sim.scenario import (
+    GpsConfig,
+    GpsMode,
+    OdometryKind,
+    Scenario,
+    ScenarioError,
+    TrafficConfig,
+    WeatherKind,
+    load_family,
+    load_scenario,
+    scenario_from_dict,
+)
+from sim.sensors import OdometryParams, odometry_preset
+
+
+def _write(tmp_path, text, name="s.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_every_key_has_a_documented_default():
+    for cls in (Scenario, TrafficConfig, GpsConfig, FusionConfig, OdometryParams):
+        for name, _tp, default, _unit, doc in describe(cls):
+            assert doc, f"{cls.__name__}.{name} has no documentation"
+            assert default is not None or name in ("origin_lat_deg",), f"{cls.__name__}.{name} has no default"
+
+
+def test_design_example_loads(tmp_path):
+    p = _write(tmp_path, '''
+name = "helsinki-rain-1"
+map = "helsinki"
+seed = 1
+duration_s = 600.0
+step_s = 0.1
+min_route_m = 1500.0
+[traffic]
+background_vehicles = 30
+[weather]
+kind = "rain"
+[odometry]
+kind = "vo"
+scale_error_sigma = 0.01
+[gps]
+mode = "init_only"
+interval_s = 5.0
+rate_hz = 1.0
+sigma_m = 2.0
+deny_in_tunnels = true
+[[tunnels]]
+start_m = 800.0
+end_m = 1300.0
+[mapfusion]
+lane_width_m = 3.0
+yaw_sigma_deg = 10.0
+''')
+    sc = load_scenario(p)
+    assert sc.weather.kind is WeatherKind.rain and sc.odometry.kind is OdometryKind.vo
+    assert sc.gps.mode is GpsMode.init_only and sc.traffic.background_vehicles == 30
+    assert sc.tunnels[0].end_m == 1300.0 and sc.mapfusion.yaw_sigma_deg == 10.0
+    assert dict(sc.odometry.overrides) == {"scale_error_sigma": 0.01}
+    assert sc.map.endswith("maps/helsinki.osm.pbf")
+
+
+@pytest.mark.parametrize(
+    "text,needle",
+    [
+        ('nmae = "x"', "unknown key nmae"),
+        ('[gps]\nsigmaa_m = 2.0', "unknown key gps.sigmaa_m"),
+        ('[odometry]\nscale_wobble = 1.0', "unknown key odometry.scale_wobble"),
+        ('[mapfusion]\nlane_width = 3', "unknown key mapfusion.lane_width"),
+        ('seed = "one"', "seed must be a whole number"),
+        ('duration_s = "long"', "duration_s must be a number"),
+        ('[gps]\nsigma_m = -1.0', "gps.sigma_m must be ≥ 0"),
+        ('step_s = 5.0', "step_s must be ≤ 1"),
+        ('[weather]\nkind = "snow"', "weather.kind = 'snow' is not one of clear, rain, heavy_rain"),
+        ('[gps]\ndeny_in_tunnels = 1', "gps.deny_in_tunnels must be true or false"),
+        ('[[tunnels]]\nstart_m = 10.0\nend_m = 5.0', "end_m"),
+        ('map = "no/such/map.osm"', "no such map file"),
+        ('[mapfusion]\nbackend = "magic"', "mapfusion.backend"),
+        ('seed = 1\nseed =', "not valid TOML"),
+    ],
+)
+def test_bad_scenarios_name_key_and_file(tmp_path, text, needle):
+    p = _write(tmp_path, text)
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario(p)
+    assert needle in str(exc.value)
+    assert str(p) in str(exc.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ScenarioError, match="no such scenario file"):
+        load_scenario(tmp_path / "nope.toml")
+
+
+def test_map_relative_to_the_file(tmp_path):
+    (tmp_path / "maps").mkdir()
+    (tmp_path / "maps" / "m.osm").write_text("<osm/>")
+    p = _write(tmp_path, 'map = "maps/m.osm"')
+    assert load_scenario(p).map == str((tmp_path / "maps" / "m.osm").resolve())
+
+
+def test_family_expands_to_the_cartesian_product(tmp_path):
+    p = _write(tmp_path, '''
+[family]
+name = "rain-tunnel"
+seeds = [1, 2, 3]
+[family.axes]
+"weather.kind" = ["clear", "rain", "heavy_rain"]
+"odometry.kind" = ["vo", "vio"]
+[base]
+map = "grid"
+''', "f.toml")
+    fam = load_family(p)
+    assert fam.name == "rain-tunnel" and len(fam.scenarios) == 18
+    assert len({s.name for s in fam.scenarios}) == 18
+    assert {(s.weather.kind.value, s.odometry.kind.value, s.seed) for s in fam.scenarios} == {
+        (w, o, s) for w in ("clear", "rain", "heavy_rain") for o in ("vo", "vio") for s in (1, 2, 3)}
+    assert "rain-tunnel-heavy_rain-vio-s3" in {s.name for s in fam.scenarios}
+
+
+def test_scenario_file_is_a_family_of_one(tmp_path):
+    fam = load_family(_write(tmp_path, 'name = "solo"\nmap = "grid"'))
+    assert len(fam.scenarios) == 1 and fam.scenarios[0].name == "solo"
+
+
+def test_bad_family(tmp_path):
+    p = _write(tmp_path, '[family]\nname = "f"\nseeds = [1]\n[family.axes]\n"gps.sigmaa_m" = [1.0]\n[base]\nmap = "grid"\n')
+    with pytest.raises(ScenarioError, match="gps.sigmaa_m"):
+        load_family(p)
+    p = _write(tmp_path, '[family]\nname = "f"\nseeds = []\n', "g.toml")
+    with pytest.raises(ScenarioError, match="seeds"):
+        load_family(p)
+
+
+@given(
+    seed=st.integers(0, 10**6), bg=st.integers(0, 100), sigma=st.floats(0.0, 50.0),
+    weather=st.sampled_from(list(WeatherKind)), odo=st.sampled_from(list(OdometryKind)),
+    mode=st.sampled_from(list(GpsMode)), lane=st.floats(0.5, 10.0),
+    zones=st.lists(st.tuples(st.floats(0, 1e4), st.floats(1.0, 1e3)), max_size=3),
+)
+def test_resolved_scenario_round_trips(seed, bg, sigma, weather, odo, mode, lane, zones):
+    d = {"name": "rt", "map": "grid", "seed": seed, "traffic": {"background_vehicles": bg},
+         "weather": {"kind": weather.value}, "odometry": {"kind": odo.value, "rain_noise_factor": 2.0},
+         "gps": {"mode": mode.value, "sigma_m": sigma}, "mapfusion": {"lane_width_m": lane},
+         "tunnels": [{"start_m": a, "end_m": a + b} for a, b in zones]}
+    sc = scenario_from_dict(d, "test")
+    again = scenario_from_dict(tomllib.loads(sc.to_toml()), "round trip")
+    assert again == sc
+
+
+def test_presets_differ_as_the_paper_says():
+    clear_vo = odometry_preset(OdometryKind.vo, WeatherKind.clear)
+    clear_vio = odometry_preset(OdometryKind.vio, WeatherKind.clear)
+    rain_vo = odometry_preset(OdometryKind.vo, WeatherKind.rain)
+    assert clear_vo.tunnel_lose_track == 1.0 and clear_vio.tunnel_lose_track == 0.0
+    assert clear_vio.scale_error_sigma < clear_vo.scale_error_sigma
+    assert rain_vo.rain_episode_rate_per_km > 0 and rain_vo.rain_lateral_drift_m_per_m > 0
+    assert dataclasses.replace(clear_vo, scale_error_sigma=0.1) == clear_vo.with_overrides((("scale_error_sigma", 0.1),))
