@@ -198,15 +198,16 @@ def simulate(
     scenario: Annotated[Path, typer.Argument(help="Scenario TOML file (DESIGN 'Scenario files').")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
 ) -> None:
-    """Drive the scenario in SUMO and write the run directory: scenario.toml (resolved), truth.tum, truth.csv
-    (and fleet.csv in fleet mode)."""
+    """Drive the scenario in SUMO, synthesise the sensors and write the run directory: scenario.toml
+    (resolved), truth.tum, truth.csv, odometry.tum, gps.csv, imu.csv (and fleet.csv in fleet mode)."""
     # The engine never needs SUMO: the simulation is imported only by the commands that drive it.
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from sim.drive import run_drive
     from sim.network import RouteError, SimulationError, build_network
-    from sim.rundir import write_truth
+    from sim.rundir import write_sensors, write_truth
     from sim.scenario import load_scenario
+    from sim.sensors import Truth, synthesise, under_bridges
 
     from .roadmap import RoadMap
 
@@ -219,7 +220,11 @@ def simulate(
                       TimeElapsedColumn(), console=err_console, transient=True, disable=not err_console.is_terminal) as bar:
             task = bar.add_task(f"simulating {sc.name}", total=sc.duration_s)
             drive = run_drive(sc, road, net, progress=lambda t, total: bar.update(task, completed=t))
+        with err_console.status("synthesising odometry, IMU and GPS ..."):
+            bridges = under_bridges(road, drive.ego.x_m, drive.ego.y_m, drive.ego.osm_way)
+            sensors = synthesise(sc, Truth.from_track(drive.ego, bridges, sc.gps))
         write_truth(out, sc, drive)
+        write_sensors(out, sensors, road.projection)
     except RouteError as exc:
         _fail(f"{scenario}: {exc}")
     except InputError as exc:
@@ -228,7 +233,8 @@ def simulate(
         _fail(f"{scenario}: {exc}", code=1)
     console.print(
         f"{sc.name}: {len(drive.ego):,} frames, {drive.ego.t_s[-1]:.1f} s simulated, {drive.ego.distance_m[-1]:,.0f} m driven "
-        f"(route {drive.route_length_m:,.0f} m), {drive.realtime_factor:,.0f}× real time → {out}"
+        f"(route {drive.route_length_m:,.0f} m), {drive.realtime_factor:,.0f}× real time; "
+        f"{len(sensors.odometry.t_s):,} odometry frames, {len(sensors.gps.t_s)} GPS fixes → {out}"
     )
 
 

@@ -1,11 +1,15 @@
-"""File formats (DESIGN "File formats", contract): TUM trajectories.
+"""File formats (DESIGN "File formats", contract).
 
-TUM: one pose a line, ``t tx ty tz qx qy qz qw``, ``#`` comments, readable by evo.
+- TUM trajectory: one pose a line, ``t tx ty tz qx qy qz qw``, ``#`` comments (readable by evo).
+- GPS: CSV with header ``t,lat,lon,alt,sigma_m``; ``alt`` and ``sigma_m`` may be empty.
+- IMU: CSV with header ``t,ax,ay,az,gx,gy,gz`` (body frame, m/s², rad/s).
 """
 
 from __future__ import annotations
 
+import csv
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -79,3 +83,120 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         raise FormatError(f"{p}: no poses in the file")
     a = np.asarray(rows)
     return a[:, 0], a[:, 1:4], a[:, 4:8]
+
+
+def matrices_to_tum(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 4, 4) poses → (xyz (N, 3), q_xyzw (N, 4))."""
+    from scipy.spatial.transform import Rotation
+
+    poses = np.asarray(poses, dtype=float)
+    return poses[:, :3, 3], Rotation.from_matrix(poses[:, :3, :3]).as_quat()
+
+
+def tum_to_matrices(xyz: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
+    """(xyz (N, 3), q_xyzw (N, 4)) → (N, 4, 4) poses (quaternions normalised)."""
+    from scipy.spatial.transform import Rotation
+
+    n = len(xyz)
+    m = np.tile(np.eye(4), (n, 1, 1))
+    q = np.asarray(q_xyzw, dtype=float)
+    norm = np.linalg.norm(q, axis=1)
+    if np.any(norm < 1e-9):
+        raise FormatError("a quaternion of zero length")
+    m[:, :3, :3] = Rotation.from_quat(q / norm[:, None]).as_matrix()
+    m[:, :3, 3] = xyz
+    return m
+
+
+GPS_HEADER = ("t", "lat", "lon", "alt", "sigma_m")
+IMU_HEADER = ("t", "ax", "ay", "az", "gx", "gy", "gz")
+
+
+@dataclass
+class GpsFixes:
+    """GPS fixes as read from a CSV: NaN where ``alt`` or ``sigma_m`` was empty."""
+
+    t_s: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    alt_m: np.ndarray
+    sigma_m: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+
+def write_gps_csv(path: str | Path, t_s, lat_deg, lon_deg, alt_m=None, sigma_m=None) -> Path:
+    p = Path(path)
+    n = len(t_s)
+    alt = [None] * n if alt_m is None else list(alt_m)
+    sig = [None] * n if sigma_m is None else list(sigma_m)
+    with open(p, "w", newline="") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(GPS_HEADER)
+        for i in range(n):
+            w.writerow([f"{t_s[i]:.6f}", f"{lat_deg[i]:.9f}", f"{lon_deg[i]:.9f}",
+                        "" if alt[i] is None or not math.isfinite(alt[i]) else f"{alt[i]:.3f}",
+                        "" if sig[i] is None or not math.isfinite(sig[i]) else f"{sig[i]:.3f}"])
+    return p
+
+
+def _csv_rows(path: Path, header: tuple[str, ...], optional: set[str]):
+    if not path.exists():
+        raise FormatError(f"{path}: no such file")
+    with open(path, newline="", encoding="utf-8", errors="replace") as f:
+        reader = csv.reader(f)
+        try:
+            head = [h.strip() for h in next(reader)]
+        except StopIteration:
+            raise FormatError(f"{path}: empty file") from None
+        if tuple(head[: len(header)]) != header:
+            raise FormatError(f"{path}:1: header must start with {','.join(header)}, got {','.join(head)}")
+        last_t = -math.inf
+        for lineno, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
+                continue
+            if len(row) < len(header):
+                raise FormatError(f"{path}:{lineno}: expected {len(header)} columns, got {len(row)}")
+            vals = []
+            for name, cell in zip(header, row):
+                cell = cell.strip()
+                if cell == "" and name in optional:
+                    vals.append(math.nan)
+                    continue
+                try:
+                    v = float(cell)
+                except ValueError:
+                    raise FormatError(f"{path}:{lineno}: {name} is not a number: {cell!r}") from None
+                vals.append(v)
+            if vals[0] <= last_t:
+                raise FormatError(f"{path}:{lineno}: time {vals[0]} does not increase (previous {last_t})")
+            last_t = vals[0]
+            yield lineno, vals
+
+
+def read_gps_csv(path: str | Path) -> GpsFixes:
+    """Read a GPS CSV. Malformed lines and time going backwards raise :class:`FormatError` with
+    file and line. Non-finite values are kept (the engine counts and rejects them)."""
+    p = Path(path)
+    rows = [vals for _, vals in _csv_rows(p, GPS_HEADER, {"alt", "sigma_m"})]
+    a = np.asarray(rows, dtype=float).reshape(-1, 5)
+    return GpsFixes(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4])
+
+
+def write_imu_csv(path: str | Path, t_s, accel_mps2, gyro_radps) -> Path:
+    p = Path(path)
+    with open(p, "w", newline="") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(IMU_HEADER)
+        for t, a, g in zip(t_s, accel_mps2, gyro_radps):
+            w.writerow([f"{t:.4f}"] + [f"{v:.6f}" for v in a] + [f"{v:.7f}" for v in g])
+    return p
+
+
+def read_imu_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read an IMU CSV: ``(t (N,), accel (N, 3), gyro (N, 3))``."""
+    p = Path(path)
+    rows = [vals for _, vals in _csv_rows(p, IMU_HEADER, set())]
+    a = np.asarray(rows, dtype=float).reshape(-1, 7)
+    return a[:, 0], a[:, 1:4], a[:, 4:7]

@@ -6,10 +6,11 @@ import csv
 import json
 from pathlib import Path
 
-from mapfusion.formats import write_tum, yaw_to_quaternion
+from mapfusion.formats import matrices_to_tum, write_gps_csv, write_imu_csv, write_tum, yaw_to_quaternion
 
 from .drive import DriveResult, Track
 from .scenario import Scenario
+from .sensors import SensorData
 
 #: truth.csv columns: the contract's first, then this test bed's additions at the end.
 TRUTH_COLUMNS = ("t", "x", "y", "z", "yaw", "speed", "lat", "lon", "sumo_edge", "osm_way", "in_tunnel",
@@ -53,4 +54,28 @@ def write_truth(run_dir: str | Path, sc: Scenario, drive: DriveResult) -> Path:
             "duration_s": float(ego.t_s[-1] - ego.t_s[0]) if len(ego) else 0.0,
             "driven_m": float(ego.distance_m[-1]) if len(ego) else 0.0, "vehicles": drive.vehicles}
     (d / "drive.json").write_text(json.dumps(info, indent=2) + "\n")
+    return d
+
+
+def write_sensors(run_dir: str | Path, sensors: SensorData, projection) -> Path:
+    """Write ``odometry.tum`` (the odometry's own frame, from identity), ``gps.csv`` and ``imu.csv``,
+    plus ``sensor_events.json`` (re-initialisations, map resets, rain episodes, dropped frames)."""
+    d = Path(run_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    odo = sensors.odometry
+    xyz, q = matrices_to_tum(odo.poses)
+    write_tum(d / "odometry.tum", odo.t_s, xyz, q, header="simulated odometry, its own frame (starts at identity)")
+    g = sensors.gps
+    lat, lon = projection.to_geo(g.x_m, g.y_m)
+    write_gps_csv(d / "gps.csv", g.t_s, lat, lon, g.alt_m, g.sigma_m)
+    write_imu_csv(d / "imu.csv", sensors.imu.t_s, sensors.imu.accel_mps2, sensors.imu.gyro_radps)
+    events = {
+        "events": [{"t": t, "kind": k} for t, k in odo.events],
+        "dropped_frames": int(odo.dropped.sum()),
+        "rain_episode_frames": int(odo.rain_episode.sum()),
+        "gps_fixes": int(len(g.t_s)),
+        "gps_outliers": int(g.outlier.sum()),
+        "odometry_params": {k: v for k, v in sensors.params.__dict__.items()},
+    }
+    (d / "sensor_events.json").write_text(json.dumps(events, indent=2) + "\n")
     return d

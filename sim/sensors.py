@@ -1,33 +1,45 @@
-"""Sensor error-model parameters: the odometry presets (kind × weather).
+"""Sensor models: drifting visual / visual-inertial odometry, IMU and GPS, from a ground truth.
 
-Every field is documented with its unit; a scenario's ``[odometry]`` table may override any of
-them. Rates are per kilometre driven, random walks per square root of metres or seconds.
+Every preset parameter is documented with its unit; a scenario's ``[odometry]`` table may
+override any :class:`OdometryParams` field. Rates are per kilometre driven, random walks per
+square root of metres driven. Each sensor draws from its own seeded stream, so changing one
+sensor's settings never changes another's noise.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation
 
 from mapfusion.config import param
 
-from .scenario import OdometryKind, WeatherKind
+from .scenario import GpsConfig, GpsMode, OdometryKind, Scenario, WeatherKind
 
 
 @dataclass(frozen=True)
 class OdometryParams:
     """Error model of a visual (or visual-inertial) odometry, per run."""
 
-    scale_error_sigma: float = param(0.005, "σ of the run's constant relative scale error.", unit="1")
-    scale_rw_per_sqrt_m: float = param(0.0002, "Random walk of the relative scale error.", unit="1/√m")
-    yaw_bias_sigma_rad_per_m: float = param(2e-5, "σ of the run's constant yaw drift per metre driven.", unit="rad/m")
-    yaw_bias_rw_rad_per_m_sqrt_m: float = param(2e-6, "Random walk of the yaw drift rate.", unit="rad/m/√m")
+    scale_error_sigma: float = param(0.002, "σ of the run's constant relative scale error.", unit="1")
+    scale_rw_per_sqrt_m: float = param(1e-4, "Random walk of the relative scale error.", unit="1/√m")
+    yaw_bias_sigma_rad_per_m: float = param(8e-6, "σ of the run's constant yaw drift per metre driven.", unit="rad/m")
+    yaw_bias_rw_rad_per_m_sqrt_m: float = param(2e-7, "Random walk of the yaw drift rate.", unit="rad/m/√m")
     translation_noise_m: float = param(0.01, "White noise on each translation axis of each step.", unit="m")
-    rotation_noise_rad: float = param(0.0005, "White noise on roll, pitch and yaw of each step.", unit="rad")
-    lateral_bias_sigma_m_per_m: float = param(0.002, "σ of the run's constant lateral drift per metre driven.", unit="m/m")
+    rotation_noise_rad: float = param(1e-4, "White noise on roll, pitch and yaw of each step.", unit="rad")
+    lateral_bias_sigma_m_per_m: float = param(5e-4, "σ of the run's constant lateral drift per metre driven.", unit="m/m")
     dropout_rate_per_km: float = param(0.0, "Outages (dropped frames) per km outside tunnels.", unit="1/km")
-    dropout_duration_s: float = param(1.0, "Mean outage duration.", unit="s")
-    reinit_jump_sigma_m: float = param(2.0, "σ of the position jump when tracking re-initialises after an outage.", unit="m")
+    dropout_duration_s: float = param(0.5, "Mean outage duration (exponential).", unit="s")
+    reinit_jump_sigma_m: float = param(2.0, "σ of the position jump when tracking re-initialises after an outage "
+                                       "(full for a gap of 10 s or more, proportionally less for shorter).", unit="m")
+    relocalise_max_gap_s: float = param(2.0, "Outages up to this long are bridged by re-matching to the map: the motion "
+                                        "over the gap is recovered (with noise growing with the gap); longer ones "
+                                        "re-initialise with a constant-velocity guess and a jump.", unit="s")
+    relocalise_noise_m_per_s: float = param(0.05, "σ of the bridged motion per second of gap, per axis.", unit="m/s")
     tunnel_lose_track: float = param(1.0, "1: tracking is lost inside GPS-denied zones (vo); 0: it continues (vio).")
     tunnel_drift_factor: float = param(1.0, "Multiplier of yaw and lateral drift inside GPS-denied zones.", unit="1")
     rain_episode_rate_per_km: float = param(0.0, "Drops on the lens: episodes of strong lateral drift per km.", unit="1/km")
@@ -41,17 +53,353 @@ class OdometryParams:
         return dataclasses.replace(self, **dict(overrides))
 
 
-def odometry_preset(kind: OdometryKind, weather: WeatherKind) -> OdometryParams:
+#: Preset changes from the base (clear-weather stereo VO), by odometry kind and by weather.
+#: Calibrated so that GPS-initialised odometry alone lands in the paper's ranges on 1.5–3 km
+#: drives (see scenarios/test_calibration.py and the README's calibration table).
+KIND_PRESETS: dict[OdometryKind, dict[str, float]] = {
+    OdometryKind.vo: {},
+    OdometryKind.vio: {"scale_error_sigma": 0.001, "scale_rw_per_sqrt_m": 1e-5, "tunnel_lose_track": 0.0,
+                       "tunnel_drift_factor": 3.0, "yaw_bias_sigma_rad_per_m": 1.5e-5, "lateral_bias_sigma_m_per_m": 1e-3},
+}
+WEATHER_PRESETS: dict[WeatherKind, dict[str, float]] = {
+    WeatherKind.clear: {},
+    WeatherKind.rain: {"rain_episode_rate_per_km": 4.0, "rain_episode_duration_s": 6.0,
+                       "rain_lateral_drift_m_per_m": 0.1, "rain_noise_factor": 2.0, "dropout_rate_per_km": 1.0},
+    WeatherKind.heavy_rain: {"rain_episode_rate_per_km": 5.0, "rain_episode_duration_s": 8.0,
+                             "rain_lateral_drift_m_per_m": 0.1, "rain_noise_factor": 3.0, "dropout_rate_per_km": 2.0},
+}
+#: In heavy rain the VIO's map resets (ORB-SLAM3 resetting its local map, paper IV.B).
+VIO_HEAVY_RAIN = {"map_reset_rate_per_km": 0.5}
+
+
+def odometry_preset(kind: OdometryKind | str, weather: WeatherKind | str) -> OdometryParams:
     """The preset parameters of an odometry kind in a weather."""
-    base = OdometryParams()
-    if kind is OdometryKind.vio:
-        base = dataclasses.replace(base, scale_error_sigma=0.002, scale_rw_per_sqrt_m=0.0001,
-                                   tunnel_lose_track=0.0, tunnel_drift_factor=3.0)
-    if weather is WeatherKind.rain:
-        base = dataclasses.replace(base, rain_episode_rate_per_km=2.0, rain_lateral_drift_m_per_m=0.05,
-                                   rain_noise_factor=2.0, dropout_rate_per_km=1.0)
-    elif weather is WeatherKind.heavy_rain:
-        base = dataclasses.replace(base, rain_episode_rate_per_km=4.0, rain_lateral_drift_m_per_m=0.08,
-                                   rain_noise_factor=3.0, dropout_rate_per_km=2.0,
-                                   map_reset_rate_per_km=0.3 if kind is OdometryKind.vio else 0.0)
-    return base
+    kind, weather = OdometryKind(kind), WeatherKind(weather)
+    changes = {**KIND_PRESETS[kind], **WEATHER_PRESETS[weather]}
+    if kind is OdometryKind.vio and weather is WeatherKind.heavy_rain:
+        changes.update(VIO_HEAVY_RAIN)
+    return dataclasses.replace(OdometryParams(), **changes)
+
+
+# ----------------------------------------------------------------------------- IMU parameters
+@dataclass(frozen=True)
+class ImuParams:
+    """Consumer MEMS IMU (datasheet-class values of a smartphone / automotive-grade 6-axis part)."""
+
+    rate_hz: float = param(100.0, "Sample rate.", unit="Hz", min=1.0)
+    accel_noise_density: float = param(2.0e-3, "Accelerometer white noise density.", unit="m/s²/√Hz")
+    gyro_noise_density: float = param(2.0e-4, "Gyroscope white noise density (0.011 °/s/√Hz).", unit="rad/s/√Hz")
+    accel_bias_sigma: float = param(0.05, "σ of the initial accelerometer bias, per axis.", unit="m/s²")
+    gyro_bias_sigma: float = param(0.005, "σ of the initial gyroscope bias, per axis (0.3 °/s).", unit="rad/s")
+    accel_bias_rw: float = param(5.0e-4, "Accelerometer bias random walk.", unit="m/s³/√Hz")
+    gyro_bias_rw: float = param(2.0e-5, "Gyroscope bias random walk.", unit="rad/s²/√Hz")
+
+
+GRAVITY_MPS2 = 9.80665
+
+
+# ----------------------------------------------------------------------------- the truth the models read
+@dataclass
+class Truth:
+    """A ground-truth trajectory the sensor models read: level poses in the map's ENU frame."""
+
+    t_s: np.ndarray
+    x_m: np.ndarray
+    y_m: np.ndarray
+    z_m: np.ndarray
+    yaw_rad: np.ndarray
+    gps_denied: np.ndarray  # no GPS fix here (tunnel, covered road, [[tunnels]] zone, under a bridge)
+    visually_degraded: np.ndarray  # tunnels and [[tunnels]] zones: VO loses track, VIO drifts
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    @classmethod
+    def from_track(cls, track, under_bridge: np.ndarray | None = None, gps: GpsConfig | None = None) -> Truth:
+        """From a recorded :class:`sim.drive.Track` (or anything with the same arrays)."""
+        gps = gps or GpsConfig()
+        tunnel = np.asarray(track.in_tunnel, dtype=bool)
+        bridge = np.zeros(len(tunnel), dtype=bool) if under_bridge is None else np.asarray(under_bridge, dtype=bool)
+        denied = (tunnel if gps.deny_in_tunnels else np.zeros_like(tunnel)) | (bridge if gps.deny_under_bridges else False)
+        return cls(np.asarray(track.t_s, float), np.asarray(track.x_m, float), np.asarray(track.y_m, float),
+                   np.asarray(track.z_m, float), np.asarray(track.yaw_rad, float), denied, tunnel)
+
+
+def under_bridges(road, x_m: np.ndarray, y_m: np.ndarray, osm_way: np.ndarray) -> np.ndarray:
+    """Frames under a bridge: a bridge way of a higher layer passes within half its width + 1 m.
+
+    A frame's own way (and a bridge the vehicle is itself on) never counts.
+    """
+    bridge_rows = np.array([w.bridge for w in road.ways], dtype=bool)
+    if not bridge_rows.any():
+        return np.zeros(len(x_m), dtype=bool)
+    layers = np.array([w.layer for w in road.ways])
+    out = np.zeros(len(x_m), dtype=bool)
+    for i, (x, y) in enumerate(zip(x_m, y_m)):
+        near = road.query_radius(float(x), float(y), 15.0)
+        if near.size == 0:
+            continue
+        rows = road.way_index[near]
+        cand = near[bridge_rows[rows]]
+        if cand.size == 0:
+            continue
+        own = int(osm_way[i]) if osm_way is not None else -1
+        own_layer = road.way(own).layer if own >= 0 and road.has_way(own) else 0
+        crow = road.way_index[cand]
+        d = np.hypot(road.xy_m[cand, 0] - x, road.xy_m[cand, 1] - y)
+        ok = (layers[crow] > own_layer) & (road.way_ids[crow] != own) & (d <= 0.5 * road.width_m[cand] + 1.0)
+        out[i] = bool(ok.any())
+    return out
+
+
+# ----------------------------------------------------------------------------- helpers
+def truth_poses(truth: Truth) -> np.ndarray:
+    """(N, 4, 4) level truth poses."""
+    n = len(truth)
+    m = np.tile(np.eye(4), (n, 1, 1))
+    m[:, :3, :3] = Rotation.from_euler("z", np.asarray(truth.yaw_rad)[:, None]).as_matrix()
+    m[:, 0, 3], m[:, 1, 3], m[:, 2, 3] = truth.x_m, truth.y_m, truth.z_m
+    return m
+
+
+def _exp_se3(xi: np.ndarray) -> np.ndarray:
+    """A small relative motion (tx, ty, tz, roll, pitch, yaw) as a 4×4 matrix (rotation by rotvec)."""
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_rotvec(xi[3:6]).as_matrix()
+    m[:3, 3] = xi[:3]
+    return m
+
+
+def _poisson_intervals(rng: np.random.Generator, dist_m: np.ndarray, t_s: np.ndarray, rate_per_km: float,
+                       mean_duration_s: float) -> np.ndarray:
+    """Frames inside episodes that start at a Poisson rate per km and last Exp(mean) seconds."""
+    out = np.zeros(len(t_s), dtype=bool)
+    if rate_per_km <= 0 or len(t_s) < 2:
+        return out
+    total_km = dist_m[-1] / 1000.0
+    n = rng.poisson(rate_per_km * total_km)
+    starts = np.sort(rng.uniform(0.0, dist_m[-1], n))
+    for s0 in starts:
+        i0 = int(np.searchsorted(dist_m, s0))
+        if i0 >= len(t_s):
+            continue
+        dur = rng.exponential(mean_duration_s)
+        out[i0:int(np.searchsorted(t_s, t_s[i0] + dur, side="right"))] = True
+    return out
+
+
+# ----------------------------------------------------------------------------- odometry
+@dataclass
+class OdometryOutput:
+    """Odometry as a VO system writes it: absolute poses in its own frame, starting at identity."""
+
+    t_s: np.ndarray  # times of the frames it output (dropped frames are absent)
+    poses: np.ndarray  # (M, 4, 4)
+    frame_index: np.ndarray  # index into the truth of every output frame
+    dropped: np.ndarray  # (N,) per truth frame: no output
+    rain_episode: np.ndarray  # (N,) per truth frame
+    events: list[tuple[float, str]] = field(default_factory=list)  # (t, "reinit" | "map_reset")
+
+
+def simulate_odometry(truth: Truth, p: OdometryParams, rng: np.random.Generator, rain: bool = False) -> OdometryOutput:
+    """Drifting odometry from a ground truth (see :class:`OdometryParams` for every error term).
+
+    Each step's true relative motion (body frame) is scaled by 1 + the scale error, turned by the
+    yaw drift, pushed sideways by the lateral drift (and, in a rain episode, by the rain drift),
+    and noised on all six axes. Frames are dropped in outages and, when ``tunnel_lose_track`` is
+    set, throughout visually degraded zones; tracking then re-initialises with a constant-velocity
+    guess over the gap plus a jump. Map resets add a jump without a gap.
+    """
+    n = len(truth)
+    T = truth_poses(truth)
+    rel_true = np.einsum("nij,njk->nik", np.linalg.inv(T[:-1]), T[1:])  # step k-1 → k in body frame
+    steps = np.hypot(np.diff(truth.x_m), np.diff(truth.y_m))
+    dist = np.concatenate(([0.0], np.cumsum(steps)))
+
+    scale_bias = rng.normal(0.0, p.scale_error_sigma)
+    yaw_rate0 = rng.normal(0.0, p.yaw_bias_sigma_rad_per_m)
+    lateral0 = rng.normal(0.0, p.lateral_bias_sigma_m_per_m)
+    episodes = _poisson_intervals(rng, dist, truth.t_s, p.rain_episode_rate_per_km, p.rain_episode_duration_s)
+    episode_sign = np.where(rng.random(n) < 0.5, -1.0, 1.0)
+    # one sign per episode: carry the sign of each episode's first frame
+    starts = np.flatnonzero(episodes & ~np.concatenate(([False], episodes[:-1])))
+    sign = np.ones(n)
+    for s0 in starts:
+        e = s0
+        while e < n and episodes[e]:
+            e += 1
+        sign[s0:e] = episode_sign[s0]
+    dropout = _poisson_intervals(rng, dist, truth.t_s, p.dropout_rate_per_km, p.dropout_duration_s)
+    lost = dropout | (truth.visually_degraded if p.tunnel_lose_track >= 0.5 else np.zeros(n, dtype=bool))
+    lost[0] = False
+    resets = _poisson_intervals(rng, dist, truth.t_s, p.map_reset_rate_per_km, 0.0) if p.map_reset_rate_per_km > 0 else np.zeros(n, bool)
+
+    noise_factor = p.rain_noise_factor if rain else 1.0
+    sig_t = p.translation_noise_m * noise_factor
+    sig_r = p.rotation_noise_rad * noise_factor
+
+    scale_rw = 0.0
+    yaw_rate = yaw_rate0
+    poses = [np.eye(4)]
+    idx = [0]
+    events: list[tuple[float, str]] = []
+    last_good = 0
+    current = np.eye(4)
+    velocity_rel = np.eye(4)  # the last measured step, for constant-velocity re-initialisation
+    for k in range(1, n):
+        ds = steps[k - 1]
+        scale_rw += rng.normal(0.0, p.scale_rw_per_sqrt_m * math.sqrt(ds)) if ds > 0 else 0.0
+        yaw_rate += rng.normal(0.0, p.yaw_bias_rw_rad_per_m_sqrt_m * math.sqrt(ds)) if ds > 0 else 0.0
+        if lost[k]:
+            continue  # no output: the frame is dropped
+        degraded = truth.visually_degraded[k]
+        drift = p.tunnel_drift_factor if degraded else 1.0
+        # the measured motion since the last output frame
+        gap_s = truth.t_s[k] - truth.t_s[last_good]
+        if last_good != k - 1 and gap_s <= p.relocalise_max_gap_s:
+            # a short outage: re-matched to the map, the motion over the gap is recovered
+            r = np.linalg.inv(T[last_good]) @ T[k]
+            dyaw = math.atan2(r[1, 0], r[0, 0])
+            xi = np.concatenate((r[:3, 3] * (1.0 + scale_bias + scale_rw)
+                                 + rng.normal(0.0, p.relocalise_noise_m_per_s * gap_s, 3) * (1, 1, 0.2),
+                                 [0.0, 0.0, dyaw + rng.normal(0.0, math.radians(0.05) * gap_s)]))
+            meas = _exp_se3(xi)
+            events.append((float(truth.t_s[k]), "relocalise"))
+        elif last_good != k - 1:
+            # re-initialisation: constant-velocity guess over the gap, plus a jump
+            gap_steps = k - last_good
+            guess = np.linalg.matrix_power(velocity_rel, gap_steps)
+            jump = p.reinit_jump_sigma_m * min(1.0, gap_s / 10.0)
+            xi = np.concatenate((rng.normal(0.0, jump, 3) * (1, 1, 0.2), rng.normal(0.0, math.radians(1.0) * min(1.0, gap_s / 10.0), 3) * (0.1, 0.1, 1)))
+            meas = guess @ _exp_se3(xi)
+            events.append((float(truth.t_s[k]), "reinit"))
+        else:
+            r = rel_true[k - 1]
+            tx, ty, tz = r[:3, 3]
+            dyaw = math.atan2(r[1, 0], r[0, 0])
+            scale = 1.0 + scale_bias + scale_rw
+            lat = (lateral0 + (sign[k] * p.rain_lateral_drift_m_per_m if episodes[k] else 0.0)) * ds * drift
+            xi = np.array([
+                scale * tx + rng.normal(0.0, sig_t),
+                scale * ty + lat + rng.normal(0.0, sig_t),
+                scale * tz + rng.normal(0.0, sig_t),
+                rng.normal(0.0, sig_r),
+                rng.normal(0.0, sig_r),
+                dyaw + yaw_rate * ds * drift + rng.normal(0.0, sig_r),
+            ])
+            meas = _exp_se3(xi)
+            velocity_rel = meas
+        if resets[k]:
+            jump = np.concatenate((rng.normal(0.0, p.map_reset_jump_sigma_m, 2), [0.0], [0.0, 0.0],
+                                   [rng.normal(0.0, math.radians(3.0))]))
+            meas = meas @ _exp_se3(jump)
+            events.append((float(truth.t_s[k]), "map_reset"))
+        current = current @ meas
+        poses.append(current.copy())
+        idx.append(k)
+        last_good = k
+    frame_index = np.asarray(idx)
+    return OdometryOutput(truth.t_s[frame_index], np.asarray(poses), frame_index, lost, episodes, events)
+
+
+# ----------------------------------------------------------------------------- IMU
+@dataclass
+class ImuOutput:
+    t_s: np.ndarray
+    accel_mps2: np.ndarray  # (M, 3) body frame specific force
+    gyro_radps: np.ndarray  # (M, 3) body frame angular rate
+
+
+def simulate_imu(truth: Truth, p: ImuParams, rng: np.random.Generator) -> ImuOutput:
+    """Accelerometer and gyroscope at ``rate_hz`` from a spline through the truth, with white
+    noise and bias random walks (body frame: x forward, y left, z up; specific force includes gravity)."""
+    t0, t1 = float(truth.t_s[0]), float(truth.t_s[-1])
+    t = np.arange(t0, t1 + 1e-9, 1.0 / p.rate_hz)
+    yaw_u = np.unwrap(truth.yaw_rad)
+    sx, sy, sz = (CubicSpline(truth.t_s, v) for v in (truth.x_m, truth.y_m, truth.z_m))
+    syaw = CubicSpline(truth.t_s, yaw_u)
+    a_world = np.column_stack([sx(t, 2), sy(t, 2), sz(t, 2) + GRAVITY_MPS2])
+    yaw = syaw(t)
+    c, s = np.cos(yaw), np.sin(yaw)
+    a_body = np.column_stack([c * a_world[:, 0] + s * a_world[:, 1], -s * a_world[:, 0] + c * a_world[:, 1], a_world[:, 2]])
+    w_body = np.column_stack([np.zeros_like(t), np.zeros_like(t), syaw(t, 1)])
+    m = len(t)
+    dt = 1.0 / p.rate_hz
+    ba = rng.normal(0.0, p.accel_bias_sigma, 3) + np.cumsum(rng.normal(0.0, p.accel_bias_rw * math.sqrt(dt), (m, 3)), axis=0)
+    bg = rng.normal(0.0, p.gyro_bias_sigma, 3) + np.cumsum(rng.normal(0.0, p.gyro_bias_rw * math.sqrt(dt), (m, 3)), axis=0)
+    acc = a_body + ba + rng.normal(0.0, p.accel_noise_density * math.sqrt(p.rate_hz), (m, 3))
+    gyr = w_body + bg + rng.normal(0.0, p.gyro_noise_density * math.sqrt(p.rate_hz), (m, 3))
+    return ImuOutput(t, acc, gyr)
+
+
+# ----------------------------------------------------------------------------- GPS
+@dataclass
+class GpsOutput:
+    t_s: np.ndarray
+    x_m: np.ndarray  # fix in the map's ENU frame
+    y_m: np.ndarray
+    alt_m: np.ndarray
+    sigma_m: np.ndarray  # what the receiver reports (the nominal σ)
+    outlier: np.ndarray  # which fixes are multipath outliers (for tests and plots)
+    frame_index: np.ndarray
+
+
+def gps_fix_frames(truth: Truth, cfg: GpsConfig) -> np.ndarray:
+    """Truth frames at which a fix is taken, before denial: by mode, rate and interval."""
+    t = truth.t_s - truth.t_s[0]
+    period = 1.0 / cfg.rate_hz
+    want = np.zeros(len(t), dtype=bool)
+    # a fix at the first frame at or after each multiple of the period
+    def mark(times, until=np.inf):
+        for tt in times:
+            if tt > until:
+                break
+            i = int(np.searchsorted(t, tt - 1e-9))
+            if i < len(t):
+                want[i] = True
+    end = float(t[-1])
+    if cfg.mode is GpsMode.continuous:
+        mark(np.arange(0.0, end + 1e-9, period))
+    else:
+        mark(np.arange(0.0, min(cfg.init_window_s, end) + 1e-9, period))
+        if cfg.mode is GpsMode.interval:
+            mark(np.arange(cfg.init_window_s, end + 1e-9, cfg.interval_s))
+    return np.flatnonzero(want)
+
+
+def simulate_gps(truth: Truth, cfg: GpsConfig, rng: np.random.Generator) -> GpsOutput:
+    """GPS fixes: by mode, σ per axis, multipath outliers, none where the truth is GPS-denied."""
+    idx = gps_fix_frames(truth, cfg)
+    idx = idx[~truth.gps_denied[idx]]
+    k = len(idx)
+    outlier = rng.random(k) < cfg.outlier_probability
+    sig = np.where(outlier, cfg.outlier_sigma_m, cfg.sigma_m)
+    ex, ey = rng.normal(0.0, 1.0, k) * sig, rng.normal(0.0, 1.0, k) * sig
+    ez = rng.normal(0.0, 1.0, k) * 2.0 * sig
+    return GpsOutput(truth.t_s[idx], truth.x_m[idx] + ex, truth.y_m[idx] + ey, truth.z_m[idx] + ez,
+                     np.full(k, cfg.sigma_m), outlier, idx)
+
+
+# ----------------------------------------------------------------------------- all sensors of a scenario
+@dataclass
+class SensorData:
+    odometry: OdometryOutput
+    imu: ImuOutput
+    gps: GpsOutput
+    params: OdometryParams
+
+
+def sensor_streams(seed: int) -> dict[str, np.random.Generator]:
+    """Independent generators per sensor from the scenario seed (changing one never moves another)."""
+    children = np.random.SeedSequence([seed, 0x5E45]).spawn(3)
+    return {name: np.random.default_rng(c) for name, c in zip(("odometry", "imu", "gps"), children)}
+
+
+def synthesise(sc: Scenario, truth: Truth) -> SensorData:
+    """Odometry (kind × weather preset with the scenario's overrides), IMU and GPS for a truth."""
+    params = odometry_preset(sc.odometry.kind, sc.weather.kind).with_overrides(sc.odometry.overrides)
+    rng = sensor_streams(sc.seed)
+    odo = simulate_odometry(truth, params, rng["odometry"], rain=WeatherKind(sc.weather.kind) is not WeatherKind.clear)
+    imu = simulate_imu(truth, ImuParams(), rng["imu"])
+    gps = simulate_gps(truth, sc.gps, rng["gps"])
+    return SensorData(odo, imu, gps, params)
