@@ -1,36 +1,12 @@
-"""Test configuration: hypothesis profiles and shared fixtures.
-
-Hypothesis loads its built-in ``ci`` profile by itself when ``CI=true``; elsewhere the ``dev``
-profile below applies (fewer examples, no deadline: the machines are noisy).
-"""
+"""Fixtures of the unit tests (profiles and cache isolation live in the root conftest.py)."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
-from hypothesis import settings
-
-settings.register_profile("dev", max_examples=40, deadline=None)
-if not os.environ.get("CI") and not os.environ.get("HYPOTHESIS_PROFILE"):
-    settings.load_profile("dev")
-elif os.environ.get("HYPOTHESIS_PROFILE"):
-    settings.load_profile(os.environ["HYPOTHESIS_PROFILE"])
 
 REPO = Path(__file__).resolve().parent.parent
-
-
-@pytest.fixture(autouse=True, scope="session")
-def _isolated_cache(tmp_path_factory):
-    """Road-map caches of the test run go to a temporary folder, never the user's cache."""
-    old = os.environ.get("MAPFUSION_CACHE")
-    os.environ["MAPFUSION_CACHE"] = str(tmp_path_factory.mktemp("mapfusion-cache"))
-    yield
-    if old is None:
-        os.environ.pop("MAPFUSION_CACHE", None)
-    else:
-        os.environ["MAPFUSION_CACHE"] = old
 
 
 @pytest.fixture(scope="session")

@@ -58,3 +58,36 @@ def write_osm(tmp_path: Path, roads: list[tuple[np.ndarray, dict]], name: str = 
     p = tmp_path / name
     p.write_text(b.to_xml())
     return p
+
+
+def synthetic_truth(kind: str = "straight", n: int = 600, dt_s: float = 0.1, speed_mps: float = 10.0,
+                    radius_m: float = 100.0, seed: int = 0, denied: tuple[int, int] | None = None):
+    """A level ground-truth trajectory for the sensor models (``sim.sensors.Truth``).
+
+    ``straight``: due east; ``circle``: counter-clockwise on ``radius_m``; ``random``: smooth
+    random yaw rate and speed. ``denied`` = (first, last) frame of a GPS-denied, visually
+    degraded zone.
+    """
+    from sim.sensors import Truth
+
+    t = np.arange(n) * dt_s
+    if kind == "straight":
+        yaw = np.zeros(n)
+        v = np.full(n, speed_mps)
+    elif kind == "circle":
+        yaw = speed_mps / radius_m * t
+        v = np.full(n, speed_mps)
+    elif kind == "random":
+        rng = np.random.default_rng(seed)
+        w = min(30, n)
+        rate = np.convolve(rng.normal(0, 0.15, n), np.ones(w) / w, mode="same")
+        yaw = np.cumsum(rate) * dt_s
+        v = np.clip(speed_mps + np.cumsum(rng.normal(0, 0.05, n)), 1.0, 30.0)
+    else:
+        raise ValueError(kind)
+    x = np.concatenate(([0.0], np.cumsum(v[:-1] * np.cos(yaw[:-1]) * dt_s)))
+    y = np.concatenate(([0.0], np.cumsum(v[:-1] * np.sin(yaw[:-1]) * dt_s)))
+    flag = np.zeros(n, dtype=bool)
+    if denied is not None:
+        flag[denied[0]:denied[1] + 1] = True
+    return Truth(t, x, y, np.zeros(n), (yaw + np.pi) % (2 * np.pi) - np.pi, flag.copy(), flag.copy())

@@ -1,0 +1,55 @@
+"""The sensor presets hold the paper's odometry-only ranges (issue 5: Tables I–IV).
+
+GPS-initialised odometry alone, on 2–3.3 km drives on Helsinki and Kotka, four seeds each:
+clear vo about 1–5 m ATE, clear vio about 1–6 m, rain vo about 8–20 m, heavy rain through a
+GPS-denied, visually degraded zone often beyond 20 m (de-localised). A later change that makes
+the test bed easier (or harsher) than the paper's data fails here.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from sim.calibration import calibration_runs, summarise
+
+pytestmark = pytest.mark.sumo
+
+
+@pytest.fixture(scope="module")
+def table():
+    rows = summarise(calibration_runs(maps=("helsinki", "kotka"), seeds=(1, 2, 3, 4)))
+    print("\nGPS-initialised odometry alone (paper ranges: clear vo 1–5 m, clear vio 1–6 m, rain vo 8–20 m, "
+          "heavy rain + tunnel often > 20 m)")
+    for r in rows:
+        print(f"  {r['weather']:>10} {r['kind']:>3}{' + tunnel' if r['tunnel'] else '':9} median {r['median_ate_m']:6.2f} m"
+              f"  mean(localised) {r['mean_ate_m']:6.2f} m  de-localised {r['delocalized']}/{r['runs']}  {r['ates_m']}")
+    return {(r["weather"], r["kind"]): r for r in rows}
+
+
+def test_drives_are_1_5_to_3_5_km(table):
+    for r in table.values():
+        assert all(1.5 <= km <= 3.5 for km in r["km"]), r["km"]
+
+
+def test_clear_vo_1_to_5_m(table):
+    r = table[("clear", "vo")]
+    assert r["delocalized"] == 0
+    assert 1.0 <= r["mean_ate_m"] <= 5.0
+
+
+def test_clear_vio_1_to_6_m(table):
+    r = table[("clear", "vio")]
+    assert r["delocalized"] == 0
+    assert 1.0 <= r["mean_ate_m"] <= 6.0
+
+
+def test_rain_vo_8_to_20_m(table):
+    r = table[("rain", "vo")]
+    assert 8.0 <= r["median_ate_m"] <= 20.0
+    assert r["delocalized"] <= r["runs"] // 2  # rain alone de-localises now and then, not mostly
+
+
+def test_heavy_rain_through_a_tunnel_often_delocalises(table):
+    vo, vio = table[("heavy_rain", "vo")], table[("heavy_rain", "vio")]
+    assert vo["delocalized"] + vio["delocalized"] >= (vo["runs"] + vio["runs"]) // 2
+    assert vo["delocalized"] >= vio["delocalized"]  # the VO loses track in the zone; the VIO drifts through

@@ -1,0 +1,241 @@
+"""Sensor models: exactness without noise, error statistics as configured, GPS denial, determinism."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapfusion.formats import read_gps_csv, read_imu_csv, read_tum, tum_to_matrices
+from sim.scenario import GpsConfig, GpsMode, OdometryKind, WeatherKind, scenario_from_dict
+from sim.sensors import (
+    GRAVITY_MPS2,
+    ImuParams,
+    OdometryParams,
+    gps_fix_frames,
+    odometry_preset,
+    simulate_gps,
+    simulate_imu,
+    simulate_odometry,
+    truth_poses,
+)
+from tests.helpers import synthetic_truth
+
+ZERO = OdometryParams(**{f.name: 0.0 for f in dataclasses.fields(OdometryParams)})
+
+
+def _quiet(**changes) -> OdometryParams:
+    return dataclasses.replace(ZERO, **changes)
+
+
+@given(kind=st.sampled_from(["straight", "circle", "random"]), seed=st.integers(0, 1000),
+       speed=st.floats(0.5, 30.0), n=st.integers(20, 400))
+def test_noise_free_odometry_integrates_back_to_the_truth(kind, seed, speed, n):
+    truth = synthetic_truth(kind, n=n, speed_mps=speed, seed=seed)
+    out = simulate_odometry(truth, ZERO, np.random.default_rng(seed))
+    assert np.allclose(out.poses[0], np.eye(4))
+    T = truth_poses(truth)
+    world = np.einsum("ij,njk->nik", T[0], out.poses)  # the odometry frame put at the first truth pose
+    assert np.abs(world[:, :3, 3] - T[out.frame_index, :3, 3]).max() < 1e-6
+    assert len(out.t_s) == n and np.all(np.diff(out.t_s) > 0)
+
+
+def _final_errors(truth, params, seeds):
+    T = truth_poses(truth)
+    out = []
+    for s in seeds:
+        o = simulate_odometry(truth, params, np.random.default_rng(s))
+        rel = np.linalg.inv(T[-1]) @ (T[0] @ o.poses[-1])  # final pose error in the true body frame
+        out.append((rel[0, 3], rel[1, 3], math.atan2(rel[1, 0], rel[0, 0])))
+    return np.array(out)
+
+
+def _sd_ok(sample: np.ndarray, expected: float) -> bool:
+    """Sample standard deviation within the 99.9% chi-square band of N(0, expected²)."""
+    n = len(sample)
+    sd = float(np.sqrt(np.mean(sample**2)))
+    tol = 3.3 / math.sqrt(2 * n)
+    return abs(sd / expected - 1.0) < tol
+
+
+SEEDS = range(400)
+
+
+def test_scale_error_matches_its_sigma():
+    truth = synthetic_truth("straight", n=200, speed_mps=10.0)  # 199 m
+    err = _final_errors(truth, _quiet(scale_error_sigma=0.01), SEEDS)
+    assert _sd_ok(err[:, 0] / 199.0, 0.01)
+
+
+def test_scale_random_walk_matches_its_rate():
+    truth = synthetic_truth("straight", n=401, speed_mps=10.0)  # 400 m in 1 m steps
+    err = _final_errors(truth, _quiet(scale_rw_per_sqrt_m=1e-3), SEEDS)
+    # the along-track error of a scale random walk is Σ_k s_k · 1 m with s_k = Σ_{j≤k} w_j, w_j ~ N(0, q²):
+    # increment w_j weighs on the N − j + 1 steps after it, so Var = q² · Σ_{m=1..N} m²
+    m = np.arange(1, 401)
+    expected = 1e-3 * math.sqrt(np.sum(m.astype(float) ** 2))
+    assert _sd_ok(err[:, 0], expected)
+
+
+def test_yaw_drift_matches_its_rate():
+    truth = synthetic_truth("straight", n=301, speed_mps=10.0)  # 300 m
+    err = _final_errors(truth, _quiet(yaw_bias_sigma_rad_per_m=1e-4), SEEDS)
+    assert _sd_ok(err[:, 2], 1e-4 * 300.0)
+
+
+def test_lateral_bias_matches_its_rate():
+    truth = synthetic_truth("straight", n=301, speed_mps=10.0)
+    err = _final_errors(truth, _quiet(lateral_bias_sigma_m_per_m=0.01), SEEDS)
+    assert _sd_ok(err[:, 1], 0.01 * 300.0)
+
+
+def test_white_noise_matches_its_sigma():
+    truth = synthetic_truth("straight", n=2, speed_mps=10.0)
+    err = _final_errors(truth, _quiet(translation_noise_m=0.05, rotation_noise_rad=0.002), range(2000))
+    assert _sd_ok(err[:, 0], 0.05) and _sd_ok(err[:, 1], 0.05)
+    assert _sd_ok(err[:, 2], 0.002)
+
+
+def test_vo_loses_track_in_degraded_zones_and_reinitialises():
+    truth = synthetic_truth("straight", n=600, denied=(200, 399))
+    out = simulate_odometry(truth, _quiet(tunnel_lose_track=1.0, reinit_jump_sigma_m=2.0), np.random.default_rng(1))
+    assert not np.isin(np.arange(200, 400), out.frame_index).any()  # dropped in the zone
+    assert [k for _, k in out.events] == ["reinit"]
+    # vio keeps tracking, drifting faster inside
+    vio = simulate_odometry(truth, _quiet(tunnel_lose_track=0.0), np.random.default_rng(1))
+    assert len(vio.t_s) == 600
+
+
+def test_rain_episodes_push_sideways():
+    truth = synthetic_truth("straight", n=3000, speed_mps=10.0)  # 3 km
+    p = _quiet(rain_episode_rate_per_km=3.0, rain_episode_duration_s=5.0, rain_lateral_drift_m_per_m=0.05)
+    lat = []
+    for s in range(50):
+        out = simulate_odometry(truth, p, np.random.default_rng(s), rain=True)
+        assert out.rain_episode.any() or s > 40
+        lat.append(out.poses[-1, 1, 3])
+    # 9 episodes of ~50 m at 0.05 m/m → ±2.5 m each, random signs: RMS around 7.5 m
+    rms = float(np.sqrt(np.mean(np.square(lat))))
+    assert 4.0 < rms < 12.0
+
+
+def test_map_resets_are_discontinuities():
+    truth = synthetic_truth("straight", n=2000, speed_mps=10.0)
+    out = simulate_odometry(truth, _quiet(map_reset_rate_per_km=3.0, map_reset_jump_sigma_m=5.0), np.random.default_rng(4))
+    resets = [t for t, k in out.events if k == "map_reset"]
+    assert resets
+    steps = np.hypot(*np.diff(out.poses[:, :2, 3], axis=0).T)
+    assert steps.max() > 2.0  # a normal step is 1 m
+
+
+def test_presets_by_kind_and_weather():
+    assert odometry_preset("vo", "heavy_rain").map_reset_rate_per_km == 0.0
+    assert odometry_preset(OdometryKind.vio, WeatherKind.heavy_rain).map_reset_rate_per_km > 0.0
+    assert odometry_preset("vo", "rain").rain_noise_factor > odometry_preset("vo", "clear").rain_noise_factor
+
+
+# ----------------------------------------------------------------------------- GPS
+def test_gps_error_statistics_match_sigma():
+    truth = synthetic_truth("random", n=20000, seed=3)
+    cfg = GpsConfig(mode=GpsMode.continuous, rate_hz=10.0, sigma_m=2.0, outlier_probability=0.0)
+    g = simulate_gps(truth, cfg, np.random.default_rng(0))
+    ex = g.x_m - truth.x_m[g.frame_index]
+    ey = g.y_m - truth.y_m[g.frame_index]
+    assert len(g.t_s) == 20000
+    assert _sd_ok(ex, 2.0) and _sd_ok(ey, 2.0)
+    assert abs(ex.mean()) < 0.05 and abs(ey.mean()) < 0.05
+
+
+def test_gps_outliers_are_tens_of_metres():
+    truth = synthetic_truth("random", n=20000, seed=4)
+    cfg = GpsConfig(mode=GpsMode.continuous, rate_hz=10.0, sigma_m=2.0, outlier_probability=0.05, outlier_sigma_m=30.0)
+    g = simulate_gps(truth, cfg, np.random.default_rng(1))
+    err = np.hypot(g.x_m - truth.x_m[g.frame_index], g.y_m - truth.y_m[g.frame_index])
+    assert 0.04 < g.outlier.mean() < 0.06
+    assert np.median(err[g.outlier]) > 20.0 and np.median(err[~g.outlier]) < 3.0
+
+
+@given(mode=st.sampled_from(list(GpsMode)), a=st.integers(0, 500), length=st.integers(1, 300), rate=st.sampled_from([0.5, 1.0, 5.0]))
+@settings(max_examples=30)
+def test_no_fix_inside_a_denied_zone(mode, a, length, rate):
+    truth = synthetic_truth("straight", n=1200, denied=(a, a + length))
+    g = simulate_gps(truth, GpsConfig(mode=mode, rate_hz=rate, init_window_s=60.0), np.random.default_rng(2))
+    assert not np.any(truth.gps_denied[g.frame_index])
+    assert np.all(np.diff(g.t_s) > 0)
+
+
+def test_gps_modes():
+    truth = synthetic_truth("straight", n=3000)  # 300 s
+    t = lambda cfg: truth.t_s[gps_fix_frames(truth, cfg)]  # noqa: E731
+    init = t(GpsConfig(mode=GpsMode.init_only, rate_hz=1.0, init_window_s=60.0))
+    assert init.max() <= 60.0 + 1e-9 and len(init) == 61
+    inter = t(GpsConfig(mode=GpsMode.interval, rate_hz=1.0, init_window_s=60.0, interval_s=5.0))
+    assert np.allclose(np.diff(inter[inter > 61.0]), 5.0)
+    cont = t(GpsConfig(mode=GpsMode.continuous, rate_hz=2.0))
+    assert np.allclose(np.diff(cont), 0.5)
+
+
+# ----------------------------------------------------------------------------- IMU
+def test_imu_on_a_circle_without_noise():
+    truth = synthetic_truth("circle", n=600, speed_mps=10.0, radius_m=50.0)
+    p = ImuParams(accel_noise_density=0.0, gyro_noise_density=0.0, accel_bias_sigma=0.0, gyro_bias_sigma=0.0,
+                  accel_bias_rw=0.0, gyro_bias_rw=0.0)
+    imu = simulate_imu(truth, p, np.random.default_rng(0))
+    mid = slice(100, -100)  # away from the spline's free ends
+    assert np.allclose(imu.accel_mps2[mid, 1], 10.0**2 / 50.0, rtol=0.02)  # centripetal, to the left
+    assert np.allclose(imu.accel_mps2[mid, 0], 0.0, atol=0.05)
+    assert np.allclose(imu.accel_mps2[mid, 2], GRAVITY_MPS2, atol=1e-6)
+    assert np.allclose(imu.gyro_radps[mid, 2], 10.0 / 50.0, rtol=0.01)
+    assert np.allclose(np.diff(imu.t_s), 0.01)
+
+
+def test_imu_noise_density():
+    truth = synthetic_truth("straight", n=1000)
+    p = ImuParams(accel_bias_sigma=0.0, gyro_bias_sigma=0.0, accel_bias_rw=0.0, gyro_bias_rw=0.0)
+    imu = simulate_imu(truth, p, np.random.default_rng(0))
+    assert _sd_ok(imu.accel_mps2[50:-50, 1], p.accel_noise_density * 10.0)
+    assert _sd_ok(imu.gyro_radps[50:-50, 0], p.gyro_noise_density * 10.0)
+
+
+# ----------------------------------------------------------------------------- simulate: files and determinism
+@pytest.mark.sumo
+def test_simulate_writes_sensor_files_identically_for_a_seed(tmp_path):
+    from typer.testing import CliRunner
+
+    from mapfusion.cli import app
+
+    sc = tmp_path / "s.toml"
+    sc.write_text('name = "s"\nmap = "tunnel"\nseed = 5\nduration_s = 150.0\n[weather]\nkind = "rain"\n'
+                  '[route]\nedges = ["1", "3"]\n[gps]\nmode = "interval"\ninit_window_s = 30.0\n')
+    runner = CliRunner()
+    for out in ("a", "b"):
+        r = runner.invoke(app, ["simulate", str(sc), "--out", str(tmp_path / out)])
+        assert r.exit_code == 0, r.output
+    for f in ("odometry.tum", "gps.csv", "imu.csv", "truth.csv"):
+        assert (tmp_path / "a" / f).read_bytes() == (tmp_path / "b" / f).read_bytes(), f
+    t, xyz, q = read_tum(tmp_path / "a" / "odometry.tum")
+    assert np.allclose(tum_to_matrices(xyz[:1], q[:1])[0], np.eye(4), atol=1e-6)
+    gps = read_gps_csv(tmp_path / "a" / "gps.csv")
+    ti, acc, gyr = read_imu_csv(tmp_path / "a" / "imu.csv")
+    assert np.all(np.diff(t) > 0) and np.all(np.diff(gps.t_s) > 0) and np.all(np.diff(ti) > 0)
+    # no fix while in the tunnel
+    import csv
+
+    rows = list(csv.DictReader(open(tmp_path / "a" / "truth.csv")))
+    tunnel_t = np.array([float(r["t"]) for r in rows if r["in_tunnel"] == "1"])
+    assert len(tunnel_t) > 0
+    assert not np.isin(np.round(gps.t_s, 3), np.round(tunnel_t, 3)).any()
+    # another seed, other noise
+    sc.write_text(sc.read_text().replace("seed = 5", "seed = 6"))
+    runner.invoke(app, ["simulate", str(sc), "--out", str(tmp_path / "c")])
+    assert (tmp_path / "a" / "odometry.tum").read_bytes() != (tmp_path / "c" / "odometry.tum").read_bytes()
+
+
+def test_scenario_overrides_reach_the_model():
+    sc = scenario_from_dict({"name": "o", "map": "grid", "odometry": {"kind": "vio", "rain_noise_factor": 7.0}}, "t")
+    p = odometry_preset(sc.odometry.kind, sc.weather.kind).with_overrides(sc.odometry.overrides)
+    assert p.rain_noise_factor == 7.0 and p.tunnel_lose_track == 0.0
