@@ -168,6 +168,35 @@ class ScaleFormula(str, enum.Enum):
     paper = "paper"  # the paper's printed S = ‖d_gps‖²/‖d_vo‖² · t_vo/t_gps
 
 
+class StateModel(str, enum.Enum):
+    """How the vehicle state is constrained (DESIGN item 7)."""
+
+    planar = "planar"  # ground vehicle: odometry projected on the horizontal plane, z/roll/pitch held level
+    pose3 = "pose3"  # the paper's free Pose3: z, roll and pitch left to the optimiser
+
+
+class PriorMode(str, enum.Enum):
+    """Which directions the map prior constrains (DESIGN items 3 and 7)."""
+
+    paper = "paper"  # x/y covariance from Σ = EΛE⁻¹ with λ1 = |v_lon|, λ2 = |v_lat| (floored)
+    along_free = "along_free"  # the same across the road, zero precision along it
+
+
+class RobustKernel(str, enum.Enum):
+    """M-estimator on the map prior, so that a wrong match cannot drag the estimate."""
+
+    none = "none"
+    huber = "huber"
+    cauchy = "cauchy"
+
+
+class Factorization(str, enum.Enum):
+    """Linear solver of ISAM2 (DESIGN item 7: Cholesky failed where QR did not)."""
+
+    qr = "QR"
+    cholesky = "CHOLESKY"
+
+
 @dataclass(frozen=True)
 class FusionConfig:
     """Parameters of the Map-Fusion engine; the ``[mapfusion]`` table of a scenario file."""
@@ -180,7 +209,7 @@ class FusionConfig:
                                           source="paper III.B ('each degree difference corresponds to 1m')")
     search_radius_m: float = param(20.0, "Radius around the predicted pose searched for map way-points.", unit="m",
                                    min=0.0, exclusive_min=True, max=500.0, source="paper IV.B ('within a 20m radius')")
-    scale_min_distance_m: float = param(20.0, "md: distance the GPS must cover before a scale sample is taken.",
+    scale_min_distance_m: float = param(100.0, "md: distance the GPS must cover before a scale sample is taken.",
                                         unit="m", min=0.0, exclusive_min=True, source="paper III.C (md); value by measurement")
     scale_min_speed_kmh: float = param(10.0, "ms: minimum average speed for a scale sample.", unit="km/h",
                                        min=0.0, exclusive_min=True, source="paper III.C (ms); value by measurement")
@@ -205,3 +234,26 @@ class FusionConfig:
     delocalization_m: float = param(20.0, "ATE above which a run counts as de-localised.", unit="m",
                                     min=0.0, exclusive_min=True, source="paper IV.B ('widest road observed')")
     use_map: bool = param(True, "Add map priors; false gives the odometry baseline (same GPS use).", source="paper IV.B")
+    state: StateModel = param(StateModel.planar, "planar (level ground vehicle) or pose3 (the paper's free Pose3).",
+                              source="DESIGN item 7; chosen by measurement")
+    prior_mode: PriorMode = param(PriorMode.along_free, "paper (σ along the road from |v_lon|) or along_free.",
+                                  source="DESIGN items 3 and 7; chosen by measurement")
+    prior_lambda_floor_m2: float = param(0.25, "Floor of the prior's eigenvalues λ1, λ2 (variances), so Σ is never singular.",
+                                         unit="m²", min=0.0, exclusive_min=True, source="DESIGN item 3")
+    robust_kernel: RobustKernel = param(RobustKernel.huber, "none | huber | cauchy on the map prior.",
+                                        source="DESIGN item 7")
+    robust_k: float = param(1.345, "Threshold of the robust kernel, in σ (whitened units).", min=0.0, exclusive_min=True,
+                            source="Huber's 95%-efficiency constant")
+    match_continuity: bool = param(True, "Prefer the current road and the roads the graph joins to it.",
+                                   source="DESIGN item 7")
+    continuity_slack_m: float = param(5.0, "An unrestricted match wins over the continuity match only when "
+                                      "its D is lower by more than this.", unit="m", min=0.0)
+    odometry_priors: bool = param(True, "Add the odometry estimate as a prior when the marginal positional σ "
+                                  "exceeds the road width.", source="paper IV.B")
+    odometry_prior_every_s: float = param(1.0, "How often the marginal σ is checked for odometry priors.", unit="s",
+                                          min=0.0, exclusive_min=True)
+    refine_scale: bool = param(True, "Keep refining the scale while GPS fixes arrive after initialisation.",
+                               source="issue 6 (a 30 s window overestimated the scale by 6%)")
+    update_every: int = param(5, "Frames between two smoother updates; the online estimate composes odometry "
+                              "on the last update in between.", min=1, max=1000, source="speed (mapfusion bench)")
+    factorization: Factorization = param(Factorization.qr, "QR or CHOLESKY for ISAM2.", source="DESIGN item 7")

@@ -30,7 +30,7 @@ from .projection import LocalProjection
 log = logging.getLogger(__name__)
 
 #: Bumped whenever the processed arrays change meaning, so stale caches are never read.
-CACHE_FORMAT = 3
+CACHE_FORMAT = 4
 
 
 @dataclass(frozen=True)
@@ -140,6 +140,7 @@ class _Build:
     s: list = field(default_factory=list)
     way_index: list = field(default_factory=list)
     edge: list = field(default_factory=list)
+    join_vertex: list = field(default_factory=list)
 
 
 class RoadMap:
@@ -175,6 +176,7 @@ class RoadMap:
         self.s_m = arrays["s_m"]
         self.way_index = arrays["way_index"]
         self.edge = arrays["edge"]
+        self.join_vertex = arrays["join_vertex"]
         self.is_join = self.edge < 0
         self.vertex_xy_m = arrays["vertex_xy_m"]
         self.vertex_node_id = arrays["vertex_node_id"]
@@ -335,6 +337,33 @@ class RoadMap:
         row = self._way_row[int(way_id)]
         return np.flatnonzero((self.way_index == row) & ~self.is_join)
 
+    def neighbourhood(self, edge: int) -> np.ndarray:
+        """Way-point indices of an edge, the edges sharing a vertex with it, and the join curves
+        at its two vertices: where a vehicle on ``edge`` can be next (matching continuity)."""
+        cache = self.__dict__.setdefault("_neighbourhood", {})
+        got = cache.get(edge)
+        if got is not None:
+            return got
+        if "_edges_at" not in self.__dict__:
+            edges_at: dict[int, list[int]] = {}
+            for e, (u, v) in enumerate(zip(self.edge_u.tolist(), self.edge_v.tolist())):
+                edges_at.setdefault(u, []).append(e)
+                edges_at.setdefault(v, []).append(e)
+            order = np.argsort(self.join_vertex, kind="stable")
+            jv = self.join_vertex[order]
+            self._edges_at = edges_at
+            self._join_sorted = (order, jv)
+        ends = {int(self.edge_u[edge]), int(self.edge_v[edge])}
+        edges = sorted({e for v in ends for e in self._edges_at.get(v, [])} | {edge})
+        parts = [np.arange(self.edge_start[e], self.edge_end[e]) for e in edges]
+        order, jv = self._join_sorted
+        for v in ends:
+            a, b = np.searchsorted(jv, v), np.searchsorted(jv, v, side="right")
+            parts.append(order[a:b])
+        got = np.concatenate(parts).astype(np.intp)
+        cache[edge] = got
+        return got
+
     def query_radius(self, x_m: float, y_m: float, radius_m: float) -> np.ndarray:
         """Indices of way-points within ``radius_m`` of (x, y), unsorted."""
         return np.asarray(self.tree.query_ball_point((x_m, y_m), radius_m), dtype=np.intp)
@@ -389,6 +418,7 @@ _ARRAY_NAMES = (
     "s_m",
     "way_index",
     "edge",
+    "join_vertex",
     "vertex_xy_m",
     "vertex_node_id",
     "vertex_degree",
@@ -440,6 +470,7 @@ def _build_graph_and_points(osm_ways: list[OsmWay], xy_all: np.ndarray, cfg: Roa
         b.s.append(s)
         b.way_index.append(np.full(len(pts), wi, dtype=np.int32))
         b.edge.append(np.full(len(pts), e, dtype=np.int32))
+        b.join_vertex.append(np.full(len(pts), -1, dtype=np.int32))
         edge_u.append(u)
         edge_v.append(v)
         edge_way.append(wi)
@@ -463,6 +494,7 @@ def _build_graph_and_points(osm_ways: list[OsmWay], xy_all: np.ndarray, cfg: Roa
         "s_m": np.concatenate(b.s).astype(np.float32),
         "way_index": np.concatenate(b.way_index).astype(np.int32),
         "edge": np.concatenate(b.edge).astype(np.int32),
+        "join_vertex": np.concatenate(b.join_vertex).astype(np.int32),
         "vertex_xy_m": np.asarray(vertex_xy, dtype=np.float64).reshape(-1, 2),
         "vertex_node_id": vertex_node,
         "vertex_degree": vertex_degree,
@@ -531,6 +563,7 @@ def _add_join_curves(b: _Build, edge_u, edge_v, edge_way, edge_start, edge_end, 
                 b.s.append(np.concatenate(([0.0], np.cumsum(seg))))
                 b.way_index.append(wi)
                 b.edge.append(np.full(len(pts), -1, dtype=np.int32))
+                b.join_vertex.append(np.full(len(pts), vertex, dtype=np.int32))
                 n_curves += 1
     log.debug("added %d join curves", n_curves)
 
