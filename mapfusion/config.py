@@ -246,6 +246,9 @@ class FusionConfig:
                             source="Huber's 95%-efficiency constant")
     match_continuity: bool = param(True, "Prefer the current road and the roads the graph joins to it.",
                                    source="DESIGN item 7")
+    prior_max_angle_deg: float = param(30.0, "No map prior from a match whose angle A exceeds this: a road heading "
+                                       "that far from the vehicle's is the crossing road at a junction.", unit="deg",
+                                       min=0.0, max=180.0, source="DESIGN item 7 (wrong-road priors at turns); by measurement")
     continuity_slack_m: float = param(5.0, "An unrestricted match wins over the continuity match only when "
                                       "its D is lower by more than this.", unit="m", min=0.0)
     odometry_priors: bool = param(True, "Add the odometry estimate as a prior when the marginal positional σ "
@@ -257,3 +260,13 @@ class FusionConfig:
     update_every: int = param(5, "Frames between two smoother updates; the online estimate composes odometry "
                               "on the last update in between.", min=1, max=1000, source="speed (mapfusion bench)")
     factorization: Factorization = param(Factorization.qr, "QR or CHOLESKY for ISAM2.", source="DESIGN item 7")
+
+    @classmethod
+    def faithful(cls, **changes) -> FusionConfig:
+        """A direct reading of the paper's section III: free Pose3, the Eq. 6 prior with |v_lon| along
+        the road, no robust kernel, no matching continuity or angle gate, ISAM2 over the whole
+        history, the scale fixed at initialisation. Kept for comparison (DESIGN item 7)."""
+        base = dict(state=StateModel.pose3, prior_mode=PriorMode.paper, robust_kernel=RobustKernel.none,
+                    match_continuity=False, prior_max_angle_deg=180.0, backend=Backend.isam2, refine_scale=False)
+        base.update(changes)
+        return cls(**base)

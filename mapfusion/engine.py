@@ -45,6 +45,7 @@ class Counters:
     gps_rejected_invalid: int = 0
     gps_before_init: int = 0
     map_priors: int = 0
+    priors_gated: int = 0
     matches: int = 0
     match_fallbacks: int = 0
     odometry_priors: int = 0
@@ -138,6 +139,8 @@ class MapFusion:
         self._scale_est = ScaleEstimator(self.cfg, gps_rate_hz, odometry_rate_hz)
         self.scale: float | None = None
         self.scale_sigma: float | None = None
+        self.scale_windows: float | None = None  # the paper's median-of-windows estimate at initialisation
+        self._n_init_samples = 0
         self._rot = 0.0  # odometry frame → ENU yaw offset
         self._trans = np.zeros(2)
         # raw odometry, accumulated in its own frame (for initialisation and scale samples)
@@ -204,10 +207,7 @@ class MapFusion:
             self._try_initialise()
             return
         if self.cfg.refine_scale:
-            self._scale_est.add_gps(t, x, y, sigma)
-            est = self._scale_est.estimate()
-            if est is not None:
-                self.scale, self.scale_sigma = est.scale, est.sigma
+            self._refine_with_fix(t, x, y, sigma)
         self._gps_wait.append((float(t), float(x), float(y), None if alt is None else float(alt), sigma))
         self._flush_gps()
 
@@ -264,6 +264,8 @@ class MapFusion:
         resid = g[:, 1:3] - rxy
         trans = np.median(resid, axis=0)
         self.scale, self.scale_sigma = s, est.sigma
+        self.scale_windows = s
+        self._n_init_samples = est.samples
         self._rot, self._trans = rot, trans
         self.initialised = True
         self.initialised_at = self._t[-1]
@@ -271,6 +273,43 @@ class MapFusion:
                  self._t[-1], s, est.sigma, est.samples, math.degrees(rot))
         self._smoother = _Smoother(self.cfg)
         self._start_graph()
+
+    def _refine_scale_ls(self) -> None:
+        """Refine the scale by a least-squares similarity between the raw odometry and the
+        initialisation window's fixes (outliers beyond 3σ of the first fit dropped): the windows'
+        median uses each fix a few times over short chords; the fit uses all of them at once."""
+        from .metrics import umeyama
+
+        g = np.array([(t, x, y, s) for t, x, y, s in self._gps_pre if self._t[0] - 0.5 <= t <= self._t[-1] + 0.5])
+        if len(g) < 10:
+            return
+        o = np.array([self._raw_at(t).translation()[:2] for t in g[:, 0]])
+        keep = np.ones(len(g), dtype=bool)
+        for _ in range(2):
+            r, tr, sc = umeyama(o[keep], g[keep, 1:3], with_scale=True)
+            resid = np.hypot(*(g[:, 1:3] - (sc * o @ r.T + tr)).T)
+            keep = resid <= 3.0 * np.median(g[:, 3]) + 1.0
+            if keep.sum() < 10:
+                return
+        spread = float(np.sqrt(np.mean(np.sum((o[keep] - o[keep].mean(0)) ** 2, axis=1))))
+        if spread * sc < 50.0:
+            return  # too little motion for a useful fit
+        sigma = float(np.median(g[keep, 3])) / (spread * sc * math.sqrt(keep.sum()))
+        log.info("scale refined by the initialisation fit: %.4f → %.4f (± %.4f)", self.scale, sc, sigma * sc)
+        self.scale, self.scale_sigma = float(sc), float(sigma * sc)
+        self._rot = math.atan2(r[1, 0], r[0, 0])
+        self._trans = tr
+
+    def _refine_with_fix(self, t: float, x: float, y: float, sigma: float) -> None:
+        """While fixes keep coming after initialisation, keep collecting scale samples; once as
+        many new samples as the initialisation used exist, their median becomes the scale."""
+        before = len(self._scale_est.samples)
+        self._scale_est.add_gps(t, x, y, sigma)
+        if len(self._scale_est.samples) > before and self._n_init_samples:
+            new = len(self._scale_est.samples) - self._n_init_samples
+            if new >= self.cfg.scale_samples:
+                est = self._scale_est.estimate(last=new)
+                self.scale, self.scale_sigma = est.scale, est.sigma
 
     def _raw_at(self, t: float) -> gtsam.Pose3:
         i = int(np.clip(np.searchsorted(self._t, t), 0, len(self._t) - 1))
@@ -319,6 +358,8 @@ class MapFusion:
                 continue
             graph.add(self._gps_factor(k, x, y, None, sigma))
             self.counters.gps_used += 1
+        if self.cfg.refine_scale:
+            self._refine_scale_ls()
         params = gtsam.LevenbergMarquardtParams()
         params.setLinearSolverType("MULTIFRONTAL_QR" if self.cfg.factorization.value == "QR" else "MULTIFRONTAL_CHOLESKY")
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
@@ -422,7 +463,8 @@ class MapFusion:
         from .matcher import _make_match  # local: the dataclass builder shared with RoadMap.match
 
         e = float(math.hypot(road.xy_m[i, 0] - x, road.xy_m[i, 1] - y))
-        m = _make_match(road, i, rev, x, y, e, 0.0, best[2])
+        a = float(np.degrees(np.arccos(min(1.0, abs(math.cos(road.yaw_rad[i] - yaw))))))
+        m = _make_match(road, i, rev, x, y, e, a, best[2])
         if road.edge[i] >= 0:
             self._edge = int(road.edge[i])
         elif self._edge < 0:
@@ -437,6 +479,9 @@ class MapFusion:
         width = m.lanes * self.cfg.lane_width_m
         r_pose, lateral = map_pose(m, pred)
         if lateral <= width:
+            return
+        if m.angle_deg > self.cfg.prior_max_angle_deg:
+            self.counters.priors_gated += 1
             return
         dt = self._t[k] - self._t[k - 1]
         v_lon, v_lat = step.x() / dt, step.y() / dt
