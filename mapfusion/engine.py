@@ -141,6 +141,7 @@ class MapFusion:
         self.scale_sigma: float | None = None
         self.scale_windows: float | None = None  # the paper's median-of-windows estimate at initialisation
         self._n_init_samples = 0
+        self._fixes_since_fit = 0
         self._rot = 0.0  # odometry frame → ENU yaw offset
         self._trans = np.zeros(2)
         # raw odometry, accumulated in its own frame (for initialisation and scale samples)
@@ -274,15 +275,16 @@ class MapFusion:
         self._smoother = _Smoother(self.cfg)
         self._start_graph()
 
-    def _refine_scale_ls(self) -> None:
-        """Refine the scale by a least-squares similarity between the raw odometry and the
-        initialisation window's fixes (outliers beyond 3σ of the first fit dropped): the windows'
-        median uses each fix a few times over short chords; the fit uses all of them at once."""
+    def _fit_scale(self, since_t: float = -math.inf):
+        """Least-squares similarity between the raw odometry and the fixes after ``since_t``
+        (outliers beyond 3σ of a first fit dropped): (scale, σ, rotation, translation) or None
+        when there are too few fixes or too little motion."""
         from .metrics import umeyama
 
-        g = np.array([(t, x, y, s) for t, x, y, s in self._gps_pre if self._t[0] - 0.5 <= t <= self._t[-1] + 0.5])
+        g = np.array([(t, x, y, s) for t, x, y, s in self._gps_pre
+                      if max(since_t, self._t[0] - 0.5) <= t <= self._t[-1] + 0.5]).reshape(-1, 4)
         if len(g) < 10:
-            return
+            return None
         o = np.array([self._raw_at(t).translation()[:2] for t in g[:, 0]])
         keep = np.ones(len(g), dtype=bool)
         for _ in range(2):
@@ -290,26 +292,32 @@ class MapFusion:
             resid = np.hypot(*(g[:, 1:3] - (sc * o @ r.T + tr)).T)
             keep = resid <= 3.0 * np.median(g[:, 3]) + 1.0
             if keep.sum() < 10:
-                return
+                return None
         spread = float(np.sqrt(np.mean(np.sum((o[keep] - o[keep].mean(0)) ** 2, axis=1))))
         if spread * sc < 50.0:
-            return  # too little motion for a useful fit
-        sigma = float(np.median(g[keep, 3])) / (spread * sc * math.sqrt(keep.sum()))
-        log.info("scale refined by the initialisation fit: %.4f → %.4f (± %.4f)", self.scale, sc, sigma * sc)
-        self.scale, self.scale_sigma = float(sc), float(sigma * sc)
-        self._rot = math.atan2(r[1, 0], r[0, 0])
-        self._trans = tr
+            return None
+        sigma = float(np.median(g[keep, 3])) / (spread * math.sqrt(keep.sum()))
+        return float(sc), sigma, math.atan2(r[1, 0], r[0, 0]), tr
+
+    def _refine_scale_ls(self) -> None:
+        """At initialisation, refine the windows' median by the least-squares fit over the whole
+        window: the median uses each fix a few times over short chords, the fit all at once."""
+        fit = self._fit_scale()
+        if fit is None:
+            return
+        log.info("scale refined by the initialisation fit: %.4f → %.4f (± %.4f)", self.scale, fit[0], fit[1])
+        self.scale, self.scale_sigma, self._rot, self._trans = fit
 
     def _refine_with_fix(self, t: float, x: float, y: float, sigma: float) -> None:
-        """While fixes keep coming after initialisation, keep collecting scale samples; once as
-        many new samples as the initialisation used exist, their median becomes the scale."""
-        before = len(self._scale_est.samples)
-        self._scale_est.add_gps(t, x, y, sigma)
-        if len(self._scale_est.samples) > before and self._n_init_samples:
-            new = len(self._scale_est.samples) - self._n_init_samples
-            if new >= self.cfg.scale_samples:
-                est = self._scale_est.estimate(last=new)
-                self.scale, self.scale_sigma = est.scale, est.sigma
+        """While fixes keep coming after initialisation, refit the scale on the fixes of the last
+        300 s every ``scale_samples`` fixes (the least-squares fit of :meth:`_fit_scale`)."""
+        self._gps_pre.append((t, x, y, sigma))
+        self._fixes_since_fit += 1
+        if self._fixes_since_fit >= self.cfg.scale_samples:
+            self._fixes_since_fit = 0
+            fit = self._fit_scale(t - 300.0)
+            if fit is not None:
+                self.scale, self.scale_sigma = fit[0], fit[1]
 
     def _raw_at(self, t: float) -> gtsam.Pose3:
         i = int(np.clip(np.searchsorted(self._t, t), 0, len(self._t) - 1))
@@ -331,6 +339,8 @@ class MapFusion:
         them, and the initialisation window's fixes (gated against the initialisation fit). The
         smoother then starts from the last buffered frame, with the batch's marginal covariance as
         its prior. (So the estimates inside the initialisation window use its later fixes too.)"""
+        if self.cfg.refine_scale:
+            self._refine_scale_ls()
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         first = self._to_map(self._raw[0])
@@ -358,8 +368,6 @@ class MapFusion:
                 continue
             graph.add(self._gps_factor(k, x, y, None, sigma))
             self.counters.gps_used += 1
-        if self.cfg.refine_scale:
-            self._refine_scale_ls()
         params = gtsam.LevenbergMarquardtParams()
         params.setLinearSolverType("MULTIFRONTAL_QR" if self.cfg.factorization.value == "QR" else "MULTIFRONTAL_CHOLESKY")
         result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
@@ -418,13 +426,15 @@ class MapFusion:
             prev = self._to_map(self._raw[k - 1])
         pred = prev.compose(step)
         self._insert_value(k, pred)
+        prior_added = False
         if self.cfg.use_map and not before_init:
-            self._map_prior(k, pred, step)
+            prior_added = self._map_prior(k, pred, step)
         self._online[k] = pred
         self._since_update += 1
         if not before_init:
             self._maybe_odometry_prior(k, pred)
-            if self._since_update >= self.cfg.update_every:
+            # a map prior updates at once: the causal estimate of frame k includes its own prior
+            if prior_added or self._since_update >= self.cfg.update_every:
                 self._update()
                 self._online[k] = self._last_updated_pose if self._last_updated_key == k else self._online[k]
 
@@ -471,18 +481,19 @@ class MapFusion:
             self._edge = -1
         return m
 
-    def _map_prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3) -> None:
+    def _map_prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3) -> bool:
+        """Add the map prior on frame k if its predicted pose is off its road; True if added."""
         m = self._match(pred)
         if m is None:
-            return
+            return False
         self.counters.matches += 1
         width = m.lanes * self.cfg.lane_width_m
         r_pose, lateral = map_pose(m, pred)
         if lateral <= width:
-            return
+            return False
         if m.angle_deg > self.cfg.prior_max_angle_deg:
             self.counters.priors_gated += 1
-            return
+            return False
         dt = self._t[k] - self._t[k - 1]
         v_lon, v_lat = step.x() / dt, step.y() / dt
         motion_dir = pred.rotation().yaw() + math.atan2(step.y(), step.x()) if step.translation()[:2].any() else pred.rotation().yaw()
@@ -494,6 +505,7 @@ class MapFusion:
         self._pending.graph.add(gtsam.PriorFactorPose3(X(k), r_pose, noise))
         self.counters.map_priors += 1
         self.map_prior_frames.append(k)
+        return True
 
     def _maybe_odometry_prior(self, k: int, pred: gtsam.Pose3) -> None:
         """Paper IV.B: when the marginal positional σ exceeds the road width, the odometry estimate

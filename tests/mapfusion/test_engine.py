@@ -1,0 +1,238 @@
+"""The Map-Fusion engine: initialisation, scale, map prior noise, lateral correction, backends, robustness."""
+
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapfusion import RoadMap, RoadMapConfig
+from mapfusion.config import Backend, FusionConfig, PriorMode, ScaleFormula
+from mapfusion.engine import EngineError, MapFusion
+from mapfusion.initialisation import ScaleEstimator, heading_offset, window_counts
+from mapfusion.prior import information, prior_sqrt_information, world_covariance
+from mapfusion.geometry import point_segment_distance
+from tests.helpers import MAPS, straight_road, synthetic_truth, write_osm
+
+ORIGIN = (60.2, 24.9)
+
+
+def _poses(truth) -> np.ndarray:
+    from sim.sensors import truth_poses
+
+    return truth_poses(truth)
+
+
+def _feed(eng: MapFusion, road: RoadMap, t, odo_poses, gps_t, gps_xy, sigma=2.0):
+    lat, lon = road.projection.to_geo(gps_xy[:, 0], gps_xy[:, 1])
+    gi = 0
+    for k in range(len(t)):
+        while gi < len(gps_t) and gps_t[gi] <= t[k] + 1e-9:
+            eng.add_gps(float(gps_t[gi]), float(lat[gi]), float(lon[gi]), None, sigma)
+            gi += 1
+        rel = np.eye(4) if k == 0 else np.linalg.inv(odo_poses[k - 1]) @ odo_poses[k]
+        eng.add_odometry(float(t[k]), rel)
+    eng.finish()
+    return eng
+
+
+def _online_xy(eng):
+    t, online = eng.online_estimates()
+    ok = np.array([p is not None for p in online])
+    xy = np.array([[p.x(), p.y()] if p is not None else [np.nan, np.nan] for p in online])
+    return t, xy, ok
+
+
+@pytest.fixture(scope="module")
+def grid():
+    return RoadMap.from_osm(MAPS / "synthetic" / "grid.osm")
+
+
+def _gps(truth, every_s=1.0, until_s=150.0, sigma=2.0, seed=0):
+    rng = np.random.default_rng(seed)
+    idx = np.flatnonzero((np.round(truth.t_s / every_s, 6) % 1 == 0) & (truth.t_s <= until_s))
+    xy = np.column_stack([truth.x_m[idx], truth.y_m[idx]]) + rng.normal(0, sigma, (len(idx), 2))
+    return truth.t_s[idx], xy
+
+
+# ----------------------------------------------------------------------------- initialisation and scale
+def test_perfect_odometry_without_map_gives_the_truth(grid):
+    truth = synthetic_truth("random", n=3000, speed_mps=10.0, seed=3)
+    truth.x_m += 100.0
+    truth.y_m += 100.0
+    T = _poses(truth)
+    gt, gxy = _gps(truth, sigma=0.01)
+    # the engine is told the odometry is perfect: its σ per step are tiny, so the whole GPS window
+    # (not the last few fixes) fixes the heading that dead reckoning carries on
+    cfg = FusionConfig(use_map=False, odometry_sigma_after_init_m=1e-4, odometry_sigma_before_init_m=1e-3,
+                       odometry_rot_sigma_deg=1e-4)
+    eng = _feed(MapFusion(grid, cfg), grid, truth.t_s, T, gt, gxy, sigma=0.01)
+    t, xy, ok = _online_xy(eng)
+    assert eng.initialised and abs(eng.scale - 1.0) < 1e-3
+    err = np.hypot(*(xy[ok] - np.column_stack([truth.x_m, truth.y_m])[ok]).T)
+    assert err.max() < 0.1, err.max()
+
+
+@settings(max_examples=8, deadline=None)
+@given(true_scale=st.floats(0.5, 2.0), seed=st.integers(0, 1000))
+def test_scale_recovered_within_one_percent(grid, true_scale, seed):
+    truth = synthetic_truth("random", n=2000, speed_mps=10.0, seed=seed)
+    T = _poses(truth)
+    odo = T.copy()
+    odo[:, :3, 3] /= true_scale  # the odometry's units are 1/scale metres
+    gt, gxy = _gps(truth, sigma=2.0, seed=seed)
+    eng = _feed(MapFusion(grid, FusionConfig(use_map=False)), grid, truth.t_s, odo, gt, gxy)
+    assert eng.scale == pytest.approx(true_scale, rel=0.01)
+
+
+def test_what_each_scale_formula_recovers():
+    """The speed ratio recovers the scale; the paper's printed S = ‖d_gps‖²/‖d_vo‖²·t_vo/t_gps
+    recovers its square (t_vo ≈ t_gps, so S ≈ (‖d_gps‖/‖d_vo‖)²)."""
+    truth = synthetic_truth("random", n=3000, speed_mps=10.0, seed=11)
+    T = _poses(truth)
+    gt, gxy = _gps(truth, sigma=2.0, until_s=300.0, seed=11)
+    for formula, expect in ((ScaleFormula.speed_ratio, 1.5), (ScaleFormula.paper, 1.5**2)):
+        est = ScaleEstimator(FusionConfig(scale_formula=formula), 1.0, 10.0)
+        gi = 0
+        for k in range(len(truth.t_s)):
+            est.add_odometry(truth.t_s[k], T[k, :3, 3] / 1.5)
+            while gi < len(gt) and gt[gi] <= truth.t_s[k]:
+                est.add_gps(gt[gi], *gxy[gi])
+                gi += 1
+        assert est.estimate().scale == pytest.approx(expect, rel=0.03), formula
+
+
+def test_window_counts_are_the_papers():
+    cfg = FusionConfig(scale_min_distance_m=20.0, scale_min_speed_kmh=10.0)
+    assert window_counts(cfg, 1.0, 10.0) == (math.ceil(20 * 3.6 * 1 / 10), round(math.ceil(20 * 3.6 / 10) * 10))
+
+
+@given(rot=st.floats(-math.pi, math.pi), seed=st.integers(0, 100))
+def test_heading_offset_recovers_a_rotation(rot, seed):
+    rng = np.random.default_rng(seed)
+    odo = np.cumsum(rng.normal(0, 5, (30, 2)) + (8, 0), axis=0)
+    c, s = math.cos(rot), math.sin(rot)
+    gps = odo @ np.array([[c, -s], [s, c]]).T + 10.0
+    assert abs(math.atan2(math.sin(heading_offset(gps, odo) - rot), math.cos(heading_offset(gps, odo) - rot))) < 1e-9
+
+
+# ----------------------------------------------------------------------------- the map prior's noise
+@given(v_lon=st.floats(-60, 60), v_lat=st.floats(-10, 10), motion=st.floats(-math.pi, math.pi),
+       road=st.floats(-math.pi, math.pi), floor=st.floats(0.01, 4.0))
+def test_prior_covariance_is_spd_at_every_speed(v_lon, v_lat, motion, road, floor):
+    for vl, vt in ((v_lon, v_lat), (0.0, 0.0)):  # and at a standstill
+        sigma = world_covariance(motion, vl, vt, floor)
+        assert np.allclose(sigma, sigma.T, atol=1e-12)
+        assert np.linalg.eigvalsh(sigma).min() >= floor * (1 - 1e-9)
+        for mode in PriorMode:
+            r = prior_sqrt_information(road, motion, vl, vt, math.radians(10), floor, mode)
+            info = information(r)
+            assert np.all(np.isfinite(r)) and np.allclose(info, info.T)
+            assert np.linalg.eigvalsh(info).min() > -1e-9
+            assert info[0, 0] == info[1, 1] == info[5, 5] == 0.0  # roll, pitch, z: zero precision
+            assert info[2, 2] == pytest.approx(1 / math.radians(10) ** 2)
+            if mode is PriorMode.paper:
+                assert np.linalg.eigvalsh(info[3:5, 3:5]).min() > 0  # positive definite in x/y
+            else:
+                assert info[3, 3] == 0.0 and info[4, 4] > 0  # free along the road, held across it
+
+
+def test_paper_prior_eigenvalues_follow_the_speeds():
+    sigma = world_covariance(0.3, 12.0, 0.5, 0.25)
+    e1 = np.array([math.cos(0.3), math.sin(0.3)])
+    assert e1 @ sigma @ e1 == pytest.approx(12.0)
+    e2 = np.array([-e1[1], e1[0]])
+    assert e2 @ sigma @ e2 == pytest.approx(0.5)
+
+
+# ----------------------------------------------------------------------------- the map corrects lateral drift
+def test_map_bounds_lateral_drift_on_a_straight_road(tmp_path):
+    road_path = write_osm(tmp_path, [(straight_road(4000.0, 0.0, (-100.0, 0.0)), {"highway": "primary", "lanes": "2"})], origin=ORIGIN)
+    road = RoadMap.from_osm(road_path, RoadMapConfig(origin_lat_deg=ORIGIN[0], origin_lon_deg=ORIGIN[1]), cache=False)
+    truth = synthetic_truth("straight", n=3500, speed_mps=10.0)  # 350 s, 3.5 km along the road
+    T = _poses(truth)
+    # a constant lateral bias of 2 cm per metre that starts after the GPS initialisation (a bias
+    # present from the start is indistinguishable from a heading offset and the initialisation
+    # would rotate it away)
+    rel = np.einsum("nij,njk->nik", np.linalg.inv(T[:-1]), T[1:])
+    rel[:, 1, 3] += np.where(truth.t_s[1:] > 160.0, 0.02 * rel[:, 0, 3], 0.0)
+    odo = np.concatenate([T[:1], T[:1]])[:1]
+    acc = [T[0]]
+    for r in rel:
+        acc.append(acc[-1] @ r)
+    odo = np.asarray(acc)
+    gt, gxy = _gps(truth, sigma=1.0, until_s=150.0)
+    width = 2 * 3.0
+    lateral = {}
+    for use_map in (False, True):
+        eng = _feed(MapFusion(road, FusionConfig(use_map=use_map)), road, truth.t_s, odo, gt, gxy, sigma=1.0)
+        t, xy, ok = _online_xy(eng)
+        # distance to the road as the map draws it (OSM rounds coordinates to ~1 cm around y = 0):
+        # the prior fires when that distance exceeds the width
+        pts = road.xy_m[~road.is_join]
+        pts = np.vstack([pts[::50], pts[-1:]])  # a straight road: every 50th way-point draws it
+        lateral[use_map] = np.where(ok, point_segment_distance(np.nan_to_num(xy), pts[:-1], pts[1:]), np.nan)
+        if use_map:
+            assert eng.counters.map_priors > 0
+    after = truth.t_s > 170.0
+    assert np.nanmax(lateral[True][after]) < width
+    base = lateral[False]
+    assert base[-1] > 3 * width  # 2 cm/m over ~1.9 km: the baseline grows without bound
+    assert np.all(np.diff(base[truth.t_s > 200.0][::100]) > 0)
+
+
+# ----------------------------------------------------------------------------- backends agree
+def test_fixed_lag_and_isam2_agree_on_a_short_drive(grid):
+    truth = synthetic_truth("random", n=500, speed_mps=8.0, seed=5)
+    truth.x_m += 200.0
+    truth.y_m += 150.0
+    rng = np.random.default_rng(5)
+    T = _poses(truth)
+    noisy = [T[0]]
+    for k in range(1, len(T)):
+        r = np.linalg.inv(T[k - 1]) @ T[k]
+        r[:2, 3] += rng.normal(0, 0.02, 2)
+        noisy.append(noisy[-1] @ r)
+    gt, gxy = _gps(truth, sigma=1.0, until_s=50.0, seed=5)
+    out = {}
+    for backend in Backend:
+        cfg = FusionConfig(backend=backend, scale_min_distance_m=20.0, scale_samples=10)
+        eng = _feed(MapFusion(grid, cfg), grid, truth.t_s, np.asarray(noisy), gt, gxy, sigma=1.0)
+        t, xy, ok = _online_xy(eng)
+        out[backend] = (xy, ok)
+    a, oka = out[Backend.fixed_lag]
+    b, okb = out[Backend.isam2]
+    both = oka & okb
+    assert both.sum() > 300
+    assert np.abs(a[both] - b[both]).max() < 0.1
+
+
+# ----------------------------------------------------------------------------- robustness
+def test_bad_measurements_are_counted_not_fatal(grid):
+    truth = synthetic_truth("random", n=1600, speed_mps=10.0, seed=2)
+    T = _poses(truth)
+    gt, gxy = _gps(truth, sigma=1.0, until_s=160.0)
+    gxy[100] += 1000.0  # a fix 1 km off, after initialisation
+    eng = MapFusion(grid, FusionConfig(use_map=False, scale_min_distance_m=50.0, scale_samples=20))
+    eng.add_gps(0.05, float("nan"), 24.9)
+    eng.add_odometry(0.0, np.full((4, 4), np.nan))
+    _feed(eng, grid, truth.t_s, T, gt, gxy, sigma=1.0)
+    c = eng.counters
+    assert c.gps_rejected_invalid >= 1 and c.odometry_rejected == 1
+    assert c.gps_rejected_gate >= 1
+    assert eng.initialised
+    with pytest.raises(EngineError, match="does not increase"):
+        eng.add_odometry(0.0, np.eye(4))
+    with pytest.raises(EngineError, match="4×4"):
+        eng.add_odometry(1e6, np.eye(3))
+
+
+def test_estimate_is_none_before_initialisation(grid):
+    eng = MapFusion(grid, FusionConfig())
+    eng.add_odometry(0.0, np.eye(4))
+    assert eng.estimate() is None and not eng.initialised and eng.trajectory() == {}
+    assert isinstance(gtsam.Pose3(), gtsam.Pose3)
