@@ -96,3 +96,89 @@ def big_city_map(directory: Path | None = None) -> Path:
 
     d = Path(directory) if directory else Path(tempfile.mkdtemp(prefix="mapfusion-bench-"))
     return synthetic.write("city", d / "city-10x15km.osm", width_km=10.0, height_km=15.0)
+
+
+@dataclass(frozen=True)
+class EngineBench:
+    """Engine throughput on a long drive (one core)."""
+
+    map: str
+    frames: int
+    duration_s: float
+    map_priors: int
+    frames_per_s: float
+    first_10pct_us: float
+    last_10pct_us: float
+
+    @property
+    def growth(self) -> float:
+        return self.last_10pct_us / self.first_10pct_us
+
+    def to_dict(self) -> dict:
+        return asdict(self) | {"growth_last_over_first": self.growth}
+
+
+def route_walk(road: RoadMap, length_m: float, seed: int = 0) -> np.ndarray:
+    """A drive along the road graph: from a random edge, a random onward edge at every junction
+    (no U-turns where another road leaves), way-points chained. Returns (N, 2) positions."""
+    rng = np.random.default_rng(seed)
+    edges_at: dict[int, list[int]] = {}
+    for e, (u, v) in enumerate(zip(road.edge_u.tolist(), road.edge_v.tolist())):
+        edges_at.setdefault(u, []).append(e)
+        edges_at.setdefault(v, []).append(e)
+    e = int(rng.integers(len(road.edge_u)))
+    forward = True
+    pts = []
+    total = 0.0
+    while total < length_m:
+        seg = road.xy_m[road.edge_start[e]:road.edge_end[e]]
+        seg = seg if forward else seg[::-1]
+        pts.append(seg if not pts else seg[1:])
+        total += float(road.edge_length_m[e])
+        end = int(road.edge_v[e] if forward else road.edge_u[e])
+        options = [x for x in edges_at[end] if x != e] or [e]
+        e = int(options[int(rng.integers(len(options)))])
+        forward = int(road.edge_u[e]) == end
+    return np.concatenate(pts)
+
+
+def bench_engine(road: RoadMap, duration_s: float = 3600.0, speed_mps: float = 10.0, rate_hz: float = 10.0,
+                 lateral_drift_m_per_m: float = 0.01, seed: int = 0) -> EngineBench:
+    """The engine with map priors and the fixed-lag backend on a synthetic drive of ``duration_s``
+    along the map's roads: GPS for the first 120 s, odometry with a lateral drift so priors fire."""
+    import gtsam
+
+    from .config import FusionConfig
+    from .engine import MapFusion
+    from .geometry import resample
+
+    path = route_walk(road, duration_s * speed_mps + 100.0, seed)
+    pts, _ = resample(path, speed_mps / rate_hz)
+    n = min(len(pts), int(duration_s * rate_hz))
+    pts = pts[:n]
+    yaw = np.arctan2(np.diff(pts[:, 1]), np.diff(pts[:, 0]))
+    yaw = np.concatenate([yaw, yaw[-1:]])
+    t = np.arange(n) / rate_hz
+    rng = np.random.default_rng(seed)
+    eng = MapFusion(road, FusionConfig(), gps_rate_hz=1.0, odometry_rate_hz=rate_hz)
+    lat, lon = road.projection.to_geo(pts[:, 0], pts[:, 1])
+    times = np.empty(n)
+    prev = gtsam.Pose3(gtsam.Rot3.Yaw(yaw[0]), gtsam.Point3(pts[0, 0], pts[0, 1], 0.0))
+    clock = time.perf_counter
+    for k in range(n):
+        cur = gtsam.Pose3(gtsam.Rot3.Yaw(yaw[k]), gtsam.Point3(pts[k, 0], pts[k, 1], 0.0))
+        rel = prev.between(cur).matrix()
+        rel[1, 3] += lateral_drift_m_per_m * rel[0, 3]
+        prev = cur
+        t0 = clock()
+        if k % int(rate_hz) == 0 and t[k] <= 120.0:
+            eng.add_gps(float(t[k]), float(lat[k]) + rng.normal(0, 1e-5), float(lon[k]) + rng.normal(0, 2e-5), None, 2.0)
+        eng.add_odometry(float(t[k]), rel)
+        times[k] = clock() - t0
+    eng.finish()
+    start = int(np.searchsorted(t, (eng.initialised_at or 0.0) + 1.0))
+    run = times[start:]
+    tenth = max(1, len(run) // 10)
+    return EngineBench(map=road.source, frames=n, duration_s=float(t[-1]), map_priors=eng.counters.map_priors,
+                       frames_per_s=float(n / times.sum()), first_10pct_us=float(run[:tenth].mean() * 1e6),
+                       last_10pct_us=float(run[-tenth:].mean() * 1e6))

@@ -11,6 +11,7 @@ all enter the graph with the loose pre-initialisation odometry σ.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 from dataclasses import dataclass, field
@@ -94,6 +95,8 @@ class _Smoother:
         params.setRelinearizeThreshold(0.01)
         params.relinearizeSkip = 1
         self.fixed_lag = cfg.backend is Backend.fixed_lag
+        # marginalised factors free their slots: reuse them, or ISAM2's factor list grows forever
+        params.findUnusedFactorSlots = self.fixed_lag
         self.s = gtsam.IncrementalFixedLagSmoother(cfg.lag_s, params) if self.fixed_lag else gtsam.ISAM2(params)
 
     def update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: dict[int, float]) -> None:
@@ -160,12 +163,14 @@ class MapFusion:
         self._last_updated_key = -1
         self._last_updated_pose: gtsam.Pose3 | None = None
         self._smoothed: dict[int, gtsam.Pose3] = {}
+        self._smoothed_upto = -1  # every frame up to this one has its final smoothed estimate
         self._since_update = 0
         self._last_cov_check_t = -math.inf
         self._pos_sigma = 0.0
         self._edge = -1  # the road edge the vehicle was last matched to
         self.map_prior_frames: list[int] = []
         self._yaw_sigma = math.radians(self.cfg.yaw_sigma_deg)
+        self._mask = np.zeros(len(road), dtype=bool)
         self._robust = self._make_robust()
 
     # ------------------------------------------------------------------ public API
@@ -320,10 +325,7 @@ class MapFusion:
                 self.scale, self.scale_sigma = fit[0], fit[1]
 
     def _raw_at(self, t: float) -> gtsam.Pose3:
-        i = int(np.clip(np.searchsorted(self._t, t), 0, len(self._t) - 1))
-        if i > 0 and abs(self._t[i - 1] - t) <= abs(self._t[i] - t):
-            i -= 1
-        return self._raw[i]
+        return self._raw[self._frame_at(t)]
 
     def _to_map(self, raw: gtsam.Pose3) -> gtsam.Pose3:
         """A raw odometry pose in the map frame by the initialisation's scale, heading and shift."""
@@ -377,6 +379,7 @@ class MapFusion:
             self._online[k] = pose
             if k < last:
                 self._smoothed[k] = pose
+        self._smoothed_upto = last - 1
         try:
             cov = gtsam.Marginals(graph, result).marginalCovariance(X(last))
             noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T) + 1e-9 * np.eye(6))
@@ -389,7 +392,8 @@ class MapFusion:
 
     # ------------------------------------------------------------------ frames
     def _frame_at(self, t: float) -> int:
-        i = int(np.clip(np.searchsorted(self._t, t), 0, len(self._t) - 1))
+        """Index of the frame nearest in time (bisect: the frame list only grows)."""
+        i = min(bisect.bisect_left(self._t, t), len(self._t) - 1)
         if i > 0 and abs(self._t[i - 1] - t) <= abs(self._t[i] - t):
             i -= 1
         return i
@@ -459,7 +463,10 @@ class MapFusion:
                                                                road.yaw_sin[near], cfg.angle_weight_m_per_deg)
         best = (int(near[k_all]), rev_all, d_all)
         if cfg.match_continuity and self._edge >= 0:
-            allowed = near[np.isin(near, road.neighbourhood(self._edge))]
+            neigh = road.neighbourhood(self._edge)
+            self._mask[neigh] = True  # a scratch mask: O(|neighbourhood| + |near|), no sorting
+            allowed = near[self._mask[near]]
+            self._mask[neigh] = False
             if allowed.size:
                 k, rev, e, a, d = match_candidates(x, y, yaw, road.xy_m[allowed], road.yaw_cos[allowed],
                                                    road.yaw_sin[allowed], cfg.angle_weight_m_per_deg)
@@ -600,14 +607,14 @@ class MapFusion:
         """Store the final estimate of the frames the fixed-lag window is about to marginalise."""
         t_new = max(p.stamps.values()) if p.stamps else self._t[self._last_key]
         horizon = t_new - self.cfg.lag_s
-        start = max(self._smoothed.keys(), default=-1) + 1
-        for k in range(start, self._last_updated_key + 1):
+        for k in range(self._smoothed_upto + 1, self._last_updated_key + 1):
             if self._t[k] >= horizon:
                 break
             try:
                 self._smoothed[k] = self._smoother.pose(X(k))
             except (RuntimeError, IndexError):  # already marginalised
                 self._smoothed[k] = self._online[k]
+            self._smoothed_upto = k
 
     def _reanchor(self, failed: _Pending) -> None:
         """A fresh smoother: a tight prior at the last good estimate, then the failed frames on it."""
@@ -616,8 +623,9 @@ class MapFusion:
         if anchor is None:
             anchor_k = min(failed.keys) - 1 if failed.keys else self._last_key
             anchor = self._online[anchor_k] if anchor_k >= 0 else self._to_map(self._raw[0])
-        for k in range(max(self._smoothed.keys(), default=-1) + 1, anchor_k + 1):
+        for k in range(self._smoothed_upto + 1, anchor_k + 1):
             self._smoothed.setdefault(k, self._online[k])
+        self._smoothed_upto = max(self._smoothed_upto, anchor_k)
         self._smoother = _Smoother(self.cfg)
         g = gtsam.NonlinearFactorGraph()
         v = gtsam.Values()

@@ -21,6 +21,7 @@ heading minus the odometry displacement's heading over the same times.
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -73,7 +74,7 @@ class ScaleEstimator:
         ts = self._odo_t
         if not ts or t < ts[0] - 1.0 or t > ts[-1] + 1.0:
             return None
-        i = int(np.clip(np.searchsorted(ts, t), 0, len(ts) - 1))
+        i = min(bisect.bisect_left(ts, t), len(ts) - 1)
         if i > 0 and abs(ts[i - 1] - t) <= abs(ts[i] - t):
             i -= 1
         return self._odo_p[i], ts[i], i
