@@ -1,6 +1,7 @@
 """The sensor presets hold the paper's odometry-only ranges (issue 5: Tables I–IV).
 
-GPS-initialised odometry alone, on 2–3.3 km drives on Helsinki and Kotka, four seeds each:
+GPS-initialised odometry alone (the engine with map priors off, as the paper's baselines), on
+2–3.3 km drives on Helsinki and Kotka, four seeds each:
 clear vo about 1–5 m ATE, clear vio about 1–6 m, rain vo about 8–20 m, heavy rain through a
 GPS-denied, visually degraded zone often beyond 20 m (de-localised). A later change that makes
 the test bed easier (or harsher) than the paper's data fails here.
