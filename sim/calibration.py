@@ -152,7 +152,7 @@ def main() -> None:
     """Print the calibration table (python -m sim.calibration)."""
     for row in summarise(calibration_runs()):
         tunnel = " + tunnel" if row["tunnel"] else ""
-        print(f"{row["weather"]:>10} {row['kind']:>3}{tunnel:9}  runs {row['runs']}  median {row['median_ate_m']:6.2f} m  "
+        print(f"{row['weather']:>10} {row['kind']:>3}{tunnel:9}  runs {row['runs']}  median {row['median_ate_m']:6.2f} m  "
               f"mean (localised) {row['mean_ate_m']:6.2f} m  de-localised {row['delocalized']}  ATEs {row['ates_m']}")
 
 
