@@ -249,6 +249,11 @@ class FusionConfig:
     prior_max_angle_deg: float = param(30.0, "No map prior from a match whose angle A exceeds this: a road heading "
                                        "that far from the vehicle's is the crossing road at a junction.", unit="deg",
                                        min=0.0, max=180.0, source="DESIGN item 7 (wrong-road priors at turns); by measurement")
+    prior_ambiguity_m: float = param(3.0, "No map prior when another way's best D is within this of the match's: "
+                                     "at junctions and beside parallel roads the match is a coin toss.", unit="m", min=0.0,
+                                     source="DESIGN item 7; by measurement")
+    prior_on_joins: bool = param(False, "Allow map priors from way-points on the rounded joins inside junctions.",
+                                 source="DESIGN item 7; by measurement")
     continuity_slack_m: float = param(5.0, "An unrestricted match wins over the continuity match only when "
                                       "its D is lower by more than this.", unit="m", min=0.0)
     odometry_priors: bool = param(True, "Add the odometry estimate as a prior when the marginal positional σ "
@@ -267,6 +272,7 @@ class FusionConfig:
         the road, no robust kernel, no matching continuity or angle gate, ISAM2 over the whole
         history, the scale fixed at initialisation. Kept for comparison (DESIGN item 7)."""
         base = dict(state=StateModel.pose3, prior_mode=PriorMode.paper, robust_kernel=RobustKernel.none,
-                    match_continuity=False, prior_max_angle_deg=180.0, backend=Backend.isam2, refine_scale=False)
+                    match_continuity=False, prior_max_angle_deg=180.0, prior_ambiguity_m=0.0, prior_on_joins=True,
+                    backend=Backend.isam2, refine_scale=False)
         base.update(changes)
         return cls(**base)

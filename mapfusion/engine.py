@@ -488,6 +488,20 @@ class MapFusion:
             self._edge = -1
         return m
 
+    def _ambiguous(self, m, pred: gtsam.Pose3) -> bool:
+        """Another way's best D lies within ``prior_ambiguity_m`` of the match's."""
+        margin = self.cfg.prior_ambiguity_m
+        if margin <= 0:
+            return False
+        road = self.road
+        near = road.query_radius(pred.x(), pred.y(), self.cfg.search_radius_m)
+        other = near[road.way_index[near] != road.way_index[m.index]]
+        if other.size == 0:
+            return False
+        _, _, _, _, d = match_candidates(pred.x(), pred.y(), pred.rotation().yaw(), road.xy_m[other],
+                                         road.yaw_cos[other], road.yaw_sin[other], self.cfg.angle_weight_m_per_deg)
+        return d - m.cost < margin
+
     def _map_prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3) -> bool:
         """Add the map prior on frame k if its predicted pose is off its road; True if added."""
         m = self._match(pred)
@@ -498,7 +512,8 @@ class MapFusion:
         r_pose, lateral = map_pose(m, pred)
         if lateral <= width:
             return False
-        if m.angle_deg > self.cfg.prior_max_angle_deg:
+        if m.angle_deg > self.cfg.prior_max_angle_deg or (m.is_join and not self.cfg.prior_on_joins) \
+                or self._ambiguous(m, pred):
             self.counters.priors_gated += 1
             return False
         dt = self._t[k] - self._t[k - 1]
