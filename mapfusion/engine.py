@@ -414,8 +414,13 @@ class MapFusion:
         return gtsam.Pose3(rel.rotation(), gtsam.Point3(*t))
 
     def _odometry_noise(self, before_init: bool, step: gtsam.Pose3) -> gtsam.noiseModel.Base:
-        st = self.cfg.odometry_sigma_before_init_m if before_init else self.cfg.odometry_sigma_after_init_m
-        sr = math.radians(self.cfg.odometry_rot_sigma_deg) * (10.0 if before_init else 1.0)
+        st = self.cfg.odometry_sigma_after_init_m
+        sr = math.radians(self.cfg.odometry_rot_sigma_deg)
+        if before_init and self.cfg.loose_before_init:
+            st, sr = self.cfg.odometry_sigma_before_init_m, 10.0 * sr
+        elif before_init:
+            # the batch is solved once the scale is known: its uncertainty scales the step's length
+            st = math.hypot(st, (self.scale_sigma or 0.0) * float(np.linalg.norm(step.translation())))
         if self.cfg.state is StateModel.planar:
             sig = [1e-3, 1e-3, sr, st, st, 1e-3]
         else:
