@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from .config import Backend, FusionConfig, PriorMode, RobustKernel, StateModel
+from .config import Backend, FusionConfig, RobustKernel, StateModel
 from .errors import InputError
 from .initialisation import ScaleEstimator, heading_offset
 from .matcher import check_pose_args, map_pose, match_candidates
@@ -51,6 +51,7 @@ class Counters:
     match_fallbacks: int = 0
     odometry_priors: int = 0
     recoveries: int = 0
+    gps_relocalisations: int = 0
     updates: int = 0
 
     def as_dict(self) -> dict:
@@ -140,6 +141,8 @@ class MapFusion:
         self.cfg = config or FusionConfig()
         self.counters = Counters()
         self._scale_est = ScaleEstimator(self.cfg, gps_rate_hz, odometry_rate_hz)
+        self._nominal_period = 1.0 / odometry_rate_hz
+        self._rejected_run: list[tuple[float, float, float, int]] = []  # consecutive gated fixes (t, x, y, frame)
         self.scale: float | None = None
         self.scale_sigma: float | None = None
         self.scale_windows: float | None = None  # the paper's median-of-windows estimate at initialisation
@@ -356,7 +359,7 @@ class MapFusion:
         guesses = [first]
         for k in range(1, len(self._t)):
             step = self._step(k)
-            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), step, self._odometry_noise(True, step)))
+            graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), step, self._odometry_noise(True, step, self._gap_frames(k))))
             pred = self._to_map(self._raw[k])
             values.insert(X(k), pred)
             guesses.append(pred)
@@ -413,9 +416,16 @@ class MapFusion:
         t = rel.translation() * self.scale
         return gtsam.Pose3(rel.rotation(), gtsam.Point3(*t))
 
-    def _odometry_noise(self, before_init: bool, step: gtsam.Pose3) -> gtsam.noiseModel.Base:
-        st = self.cfg.odometry_sigma_after_init_m
-        sr = math.radians(self.cfg.odometry_rot_sigma_deg)
+    def _odometry_noise(self, before_init: bool, step: gtsam.Pose3, gap_frames: float = 1.0) -> gtsam.noiseModel.Base:
+        """σ of one odometry step. A step across dropped frames is looser in proportion to the
+        frames it spans, and one across an outage (over 1 s) is at least 30% of its length: a
+        re-initialised odometry guesses the motion it did not see."""
+        n = max(1.0, gap_frames)
+        st = self.cfg.odometry_sigma_after_init_m * n
+        sr = math.radians(self.cfg.odometry_rot_sigma_deg) * n
+        if n * self._nominal_period > 1.0:
+            st = max(st, 0.3 * float(np.linalg.norm(step.translation())))
+            sr = max(sr, math.radians(20.0))
         if before_init and self.cfg.loose_before_init:
             st, sr = self.cfg.odometry_sigma_before_init_m, 10.0 * sr
         elif before_init:
@@ -427,9 +437,13 @@ class MapFusion:
             sig = [sr, sr, sr, st, st, st]
         return gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sig))
 
+    def _gap_frames(self, k: int) -> float:
+        return (self._t[k] - self._t[k - 1]) / self._nominal_period
+
     def _add_frame(self, k: int, before_init: bool = False) -> None:
         step = self._step(k)
-        self._pending.graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), step, self._odometry_noise(before_init, step)))
+        noise = self._odometry_noise(before_init, step, self._gap_frames(k))
+        self._pending.graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), step, noise))
         prev = self._online[k - 1]
         if prev is None:
             prev = self._to_map(self._raw[k - 1])
@@ -581,12 +595,40 @@ class MapFusion:
         return (self._t[-1] - self._t[-2]) if len(self._t) >= 2 else 0.1
 
     def _gate_and_add(self, k: int, x: float, y: float, alt: float | None, sigma: float) -> None:
+        """Mahalanobis gate. A run of rejected fixes that agree with each other means the estimate
+        is lost, not the GPS: after 5 within 10 s whose mutual displacements match the odometry's
+        within the gate, they are accepted (counted as a recovery)."""
         pred = self._online[k] or self._online[-1]
         spread = math.sqrt(sigma * sigma + self._pos_sigma * self._pos_sigma + 1.0)
-        if math.hypot(pred.x() - x, pred.y() - y) > self.cfg.gps_gate_sigma * spread:
-            self.counters.gps_rejected_gate += 1
+        if math.hypot(pred.x() - x, pred.y() - y) <= self.cfg.gps_gate_sigma * spread:
+            self._rejected_run.clear()
+            self._add_gps_factor(k, x, y, alt, sigma)
             return
-        self._add_gps_factor(k, x, y, alt, sigma)
+        self.counters.gps_rejected_gate += 1
+        t = self._t[k]
+        self._rejected_run = [r for r in self._rejected_run if t - r[0] <= 10.0] + [(t, x, y, k)]
+        if len(self._rejected_run) >= 5 and self._run_consistent(sigma):
+            self.counters.gps_relocalisations += 1
+            log.warning("t=%.1f s: %d consistent GPS fixes disagree with the estimate: re-localising on GPS",
+                        t, len(self._rejected_run))
+            for _, rx, ry, rk in self._rejected_run:
+                self._add_gps_factor(rk, rx, ry, None, sigma)
+            self._rejected_run.clear()
+            self._pos_sigma = 0.0
+
+    def _run_consistent(self, sigma: float) -> bool:
+        """The run's fixes move as the odometry says (each displacement from the first fix)."""
+        _, x0, y0, k0 = self._rejected_run[0]
+        p0 = self._online[k0]
+        for _, x, y, k in self._rejected_run[1:]:
+            p = self._online[k]
+            if p is None or p0 is None:
+                return False
+            dg = np.array([x - x0, y - y0])
+            do = np.array([p.x() - p0.x(), p.y() - p0.y()])
+            if np.linalg.norm(dg - do) > self.cfg.gps_gate_sigma * math.sqrt(2.0) * sigma + 0.05 * np.linalg.norm(do):
+                return False
+        return True
 
     def _gps_factor(self, k: int, x: float, y: float, alt: float | None, sigma: float) -> gtsam.GPSFactor:
         planar = self.cfg.state is StateModel.planar or alt is None
@@ -658,7 +700,7 @@ class MapFusion:
             if k <= anchor_k:
                 continue
             step = self._step(k)
-            g.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), step, self._odometry_noise(False, step)))
+            g.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), step, self._odometry_noise(False, step, self._gap_frames(k))))
             v.insert(X(k), self._online[k] if self._online[k] is not None else anchor)
             stamps[X(k)] = self._t[k]
         try:

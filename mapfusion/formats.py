@@ -50,39 +50,62 @@ def write_tum(path: str | Path, t_s: np.ndarray, xyz_m: np.ndarray, q_xyzw: np.n
     return p
 
 
-def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Read a TUM trajectory: ``(t (N,), xyz (N, 3), q_xyzw (N, 4))``.
-
-    A line with other than 8 numbers, a non-finite value or a time not after the previous one
-    raises :class:`FormatError` naming the file and the line.
-    """
+def numeric_rows(path: str | Path, columns: int | None, what: str, increasing: bool = True, comma_ok: bool = False):
+    """Rows of whitespace-separated numbers from a text file, with ``#`` comments and blank lines
+    skipped: ``(line number, values)``. A row with other than ``columns`` numbers (when given),
+    a non-number, NaN or infinity, or (``increasing``) a first value not above the previous one
+    raises :class:`FormatError` naming the file and line; ``what`` describes a row."""
     p = Path(path)
     if not p.exists():
         raise FormatError(f"{p}: no such file")
-    rows = []
-    last_t = -math.inf
+    last = -math.inf
     with open(p, encoding="utf-8", errors="replace") as f:
         for lineno, line in enumerate(f, start=1):
             s = line.strip()
             if not s or s.startswith("#"):
                 continue
-            parts = s.replace(",", " ").split()
-            if len(parts) != 8:
-                raise FormatError(f"{p}:{lineno}: expected 8 numbers (t tx ty tz qx qy qz qw), got {len(parts)}")
+            parts = (s.replace(",", " ") if comma_ok else s).split()
+            if columns is not None and len(parts) != columns:
+                raise FormatError(f"{p}:{lineno}: expected {columns} numbers ({what}), got {len(parts)}")
             try:
                 vals = [float(v) for v in parts]
             except ValueError:
                 raise FormatError(f"{p}:{lineno}: not a number in {s[:60]!r}") from None
             if not all(math.isfinite(v) for v in vals):
                 raise FormatError(f"{p}:{lineno}: NaN or infinite value")
-            if vals[0] <= last_t:
-                raise FormatError(f"{p}:{lineno}: time {vals[0]} does not increase (previous {last_t})")
-            last_t = vals[0]
-            rows.append(vals)
+            if increasing:
+                if vals[0] <= last:
+                    raise FormatError(f"{p}:{lineno}: time {vals[0]} does not increase (previous {last})")
+                last = vals[0]
+            yield lineno, vals
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a TUM trajectory: ``(t (N,), xyz (N, 3), q_xyzw (N, 4))``.
+
+    A line with other than 8 numbers, a non-finite value or a time not after the previous one
+    raises :class:`FormatError` naming the file and the line.
+    """
+    rows = [v for _, v in numeric_rows(path, 8, "t tx ty tz qx qy qz qw", comma_ok=True)]
     if not rows:
-        raise FormatError(f"{p}: no poses in the file")
+        raise FormatError(f"{path}: no poses in the file")
     a = np.asarray(rows)
     return a[:, 0], a[:, 1:4], a[:, 4:8]
+
+
+def read_kitti_poses(path: str | Path) -> np.ndarray:
+    """KITTI odometry poses: 12 numbers a line (the top 3×4 of T_world_cam), → (N, 4, 4)."""
+    rows = [v for _, v in numeric_rows(path, 12, "a KITTI pose: the top 3×4 of T_world_cam", increasing=False)]
+    if not rows:
+        raise FormatError(f"{path}: no poses in the file")
+    m = np.tile(np.eye(4), (len(rows), 1, 1))
+    m[:, :3, :4] = np.asarray(rows).reshape(-1, 3, 4)
+    return m
+
+
+def read_times(path: str | Path) -> np.ndarray:
+    """One timestamp a line (KITTI ``times.txt``); strictly increasing."""
+    return np.asarray([v[0] for _, v in numeric_rows(path, 1, "one time in seconds")])
 
 
 def matrices_to_tum(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -14,7 +14,7 @@ import numpy as np
 from .config import FusionConfig, from_mapping
 from .engine import MapFusion
 from .errors import ConfigError
-from .formats import FormatError, GpsFixes, read_gps_csv, read_tum, tum_to_matrices
+from .formats import FormatError, GpsFixes, read_kitti_poses, read_times, read_tum, tum_to_matrices
 from .roadmap import RoadMap
 
 
@@ -48,55 +48,6 @@ def body_to_camera(poses: np.ndarray) -> np.ndarray:
     c = np.eye(4)
     c[:3, :3] = R_BODY_CAMERA
     return np.einsum("ij,njk,kl->nil", c.T, np.asarray(poses, dtype=float), c)
-
-
-def read_kitti_poses(path: str | Path) -> np.ndarray:
-    """KITTI odometry poses: 12 numbers a line (the top 3×4 of T_world_cam), → (N, 4, 4)."""
-    p = Path(path)
-    if not p.exists():
-        raise FormatError(f"{p}: no such file")
-    rows = []
-    with open(p, encoding="utf-8", errors="replace") as f:
-        for lineno, line in enumerate(f, start=1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = s.split()
-            if len(parts) != 12:
-                raise FormatError(f"{p}:{lineno}: a KITTI pose has 12 numbers, got {len(parts)}")
-            try:
-                vals = [float(v) for v in parts]
-            except ValueError:
-                raise FormatError(f"{p}:{lineno}: not a number in {s[:60]!r}") from None
-            if not all(math.isfinite(v) for v in vals):
-                raise FormatError(f"{p}:{lineno}: NaN or infinite value")
-            rows.append(vals)
-    if not rows:
-        raise FormatError(f"{p}: no poses in the file")
-    m = np.tile(np.eye(4), (len(rows), 1, 1))
-    m[:, :3, :4] = np.asarray(rows).reshape(-1, 3, 4)
-    return m
-
-
-def read_times(path: str | Path) -> np.ndarray:
-    """One timestamp a line (KITTI ``times.txt``); strictly increasing."""
-    p = Path(path)
-    if not p.exists():
-        raise FormatError(f"{p}: no such file")
-    out = []
-    with open(p, encoding="utf-8", errors="replace") as f:
-        for lineno, line in enumerate(f, start=1):
-            s = line.strip()
-            if not s:
-                continue
-            try:
-                t = float(s.split()[0])
-            except ValueError:
-                raise FormatError(f"{p}:{lineno}: not a time: {s[:40]!r}") from None
-            if out and t <= out[-1]:
-                raise FormatError(f"{p}:{lineno}: time {t} does not increase (previous {out[-1]})")
-            out.append(t)
-    return np.asarray(out)
 
 
 def read_odometry(path: str | Path, fmt: OdometryFormat = OdometryFormat.tum, times: str | Path | None = None,

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+
+import numpy as np
 import subprocess
 import sys
 
@@ -102,3 +104,98 @@ def test_simulate_bad_input_exits_2(tmp_path, text, needle):
     r = runner.invoke(app, ["simulate", str(sc), "--out", str(tmp_path / "r")])
     assert r.exit_code == 2, r.output
     assert needle in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+# ----------------------------------------------------------------------------- fuse
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory):
+    """A short simulated drive on the tunnel map with GPS throughout (so the engine initialises)."""
+    d = tmp_path_factory.mktemp("run")
+    sc = d / "s.toml"
+    sc.write_text('name = "f"\nmap = "tunnel"\nseed = 3\nduration_s = 150.0\n[route]\nedges = ["1", "3"]\n'
+                  '[gps]\nmode = "continuous"\n')
+    r = runner.invoke(app, ["simulate", str(sc), "--out", str(d / "run")])
+    assert r.exit_code == 0, r.output
+    return d / "run"
+
+
+@pytest.mark.sumo
+def test_fuse_writes_an_estimate_near_the_truth(sim_run, tmp_path):
+    from mapfusion.formats import read_tum
+    from mapfusion.metrics import associate
+
+    out = tmp_path / "est.tum"
+    r = runner.invoke(app, ["fuse", "--map", "tunnel", "--odometry", str(sim_run / "odometry.tum"),
+                            "--gps", str(sim_run / "gps.csv"), "--out", str(out), "--smoothed", str(tmp_path / "s.tum")])
+    assert r.exit_code == 0, r.output
+    te, xe, _ = read_tum(out)
+    tt, xt, _ = read_tum(sim_run / "truth.tum")
+    ia, ib = associate(te, tt)
+    assert len(ia) > 0.5 * len(tt)
+    err = np.hypot(*(xe[ia, :2] - xt[ib, :2]).T)
+    assert np.sqrt(np.mean(err**2)) < 10.0  # GPS throughout at σ = 2 m
+    assert (tmp_path / "s.tum").stat().st_size > 0
+
+
+@pytest.mark.sumo
+def test_fuse_reads_kitti_camera_poses(sim_run, tmp_path):
+    from mapfusion.formats import read_tum, tum_to_matrices
+    from mapfusion.runner import body_to_camera
+
+    t, xyz, q = read_tum(sim_run / "odometry.tum")
+    cam = body_to_camera(tum_to_matrices(xyz, q))
+    (tmp_path / "poses.txt").write_text("\n".join(" ".join(f"{v:.9f}" for v in m[:3, :4].ravel()) for m in cam) + "\n")
+    (tmp_path / "times.txt").write_text("\n".join(f"{v:.6f}" for v in t) + "\n")
+    args = ["fuse", "--map", "tunnel", "--odometry", str(tmp_path / "poses.txt"), "--odometry-format", "kitti",
+            "--times", str(tmp_path / "times.txt"), "--odometry-frame", "camera", "--gps", str(sim_run / "gps.csv")]
+    r = runner.invoke(app, args + ["--out", str(tmp_path / "k.tum")])
+    assert r.exit_code == 0, r.output
+    r2 = runner.invoke(app, ["fuse", "--map", "tunnel", "--odometry", str(sim_run / "odometry.tum"),
+                             "--gps", str(sim_run / "gps.csv"), "--out", str(tmp_path / "b.tum")])
+    assert r2.exit_code == 0
+    _, a, _ = read_tum(tmp_path / "k.tum")
+    _, b, _ = read_tum(tmp_path / "b.tum")
+    assert np.abs(a - b).max() < 1e-3  # the same motion, whichever file format and frame
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize(
+    "mutate,needle",
+    [
+        (lambda p: p.write_text(p.read_text() + "1 2 3 4 5 6 7 8 9 10 11\n"), ":"),
+        (lambda p: p.write_text("1 2 3\n"), ":1:"),
+    ],
+)
+def test_fuse_bad_kitti_lines_exit_2(sim_run, tmp_path, mutate, needle):
+    poses = tmp_path / "poses.txt"
+    poses.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1 0 1 0 0 0 0 1 0\n")
+    mutate(poses)
+    times = tmp_path / "times.txt"
+    times.write_text("0.0\n0.1\n0.2\n")
+    r = runner.invoke(app, ["fuse", "--map", "tunnel", "--odometry", str(poses), "--odometry-format", "kitti",
+                            "--times", str(times), "--gps", str(sim_run / "gps.csv"), "--out", str(tmp_path / "x.tum")])
+    assert r.exit_code == 2
+    assert "poses.txt" in r.stderr and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.sumo
+def test_fuse_no_map_adds_no_priors(sim_run, tmp_path):
+    r = runner.invoke(app, ["fuse", "--map", "tunnel", "--odometry", str(sim_run / "odometry.tum"),
+                            "--gps", str(sim_run / "gps.csv"), "--out", str(tmp_path / "n.tum"), "--no-map"])
+    assert r.exit_code == 0 and "map priors 0" in r.stdout
+
+
+def test_camera_body_round_trip():
+    from mapfusion.runner import body_to_camera, camera_to_body
+
+    rng = np.random.default_rng(0)
+    from scipy.spatial.transform import Rotation
+
+    m = np.tile(np.eye(4), (20, 1, 1))
+    m[:, :3, :3] = Rotation.random(20, random_state=1).as_matrix()
+    m[:, :3, 3] = rng.normal(0, 10, (20, 3))
+    assert np.allclose(body_to_camera(camera_to_body(m)), m)
+    # a camera moving along its z (forward) moves along the body's x
+    fwd = np.eye(4)
+    fwd[2, 3] = 1.0
+    assert np.allclose(camera_to_body(fwd[None])[0][:3, 3], [1.0, 0.0, 0.0])
