@@ -611,22 +611,62 @@ class MapFusion:
             self.counters.gps_relocalisations += 1
             log.warning("t=%.1f s: %d consistent GPS fixes disagree with the estimate: re-localising on GPS",
                         t, len(self._rejected_run))
-            for _, rx, ry, rk in self._rejected_run:
-                self._add_gps_factor(rk, rx, ry, None, sigma)
-            self._rejected_run.clear()
-            self._pos_sigma = 0.0
+            self._relocalise(sigma)
+
+    def _relocalise(self, sigma: float) -> None:
+        """Re-initialise from GPS, as at the start: the run's last fix gives the position, the angle
+        between the run's GPS displacement and the estimate's own displacement corrects the heading.
+        A fresh smoother is anchored there and the frames since are re-added on top."""
+        run = self._rejected_run
+        _, x0, y0, k0 = run[0]
+        _, xn, yn, kn = run[-1]
+        p0, pn = self._online[k0], self._online[kn]
+        dg = (xn - x0, yn - y0)
+        do = (pn.x() - p0.x(), pn.y() - p0.y())
+        length = math.hypot(*dg)
+        delta = math.atan2(dg[1], dg[0]) - math.atan2(do[1], do[0]) if length > 5.0 and math.hypot(*do) > 5.0 else 0.0
+        yaw = pn.rotation().yaw() + delta
+        anchor = gtsam.Pose3(gtsam.Rot3.Ypr(yaw, pn.rotation().pitch(), pn.rotation().roll()),
+                             gtsam.Point3(xn, yn, pn.z()))
+        if self.cfg.state is StateModel.planar:
+            anchor = level(anchor)
+        yaw_sigma = math.atan2(3.0 * sigma, max(length, 1.0)) + math.radians(2.0)
+        for k in range(self._smoothed_upto + 1, kn):
+            if self._online[k] is not None:
+                self._smoothed.setdefault(k, self._online[k])
+        self._smoothed_upto = max(self._smoothed_upto, kn - 1)
+        self._smoother = _Smoother(self.cfg)
+        self._pending = _Pending()
+        self._pending.graph.add(gtsam.PriorFactorPose3(X(kn), anchor, gtsam.noiseModel.Diagonal.Sigmas(
+            np.array([1e-3, 1e-3, yaw_sigma, sigma, sigma, 1e-3]))))
+        self._insert_value(kn, anchor)
+        self._online[kn] = anchor
+        pose = anchor
+        for k in range(kn + 1, len(self._t)):
+            step = self._step(k)
+            self._pending.graph.add(gtsam.BetweenFactorPose3(X(k - 1), X(k), step,
+                                                             self._odometry_noise(False, step, self._gap_frames(k))))
+            pose = pose.compose(step)
+            self._insert_value(k, pose)
+            self._online[k] = pose
+        self._last_updated_key, self._last_updated_pose = -1, None
+        self._rejected_run = []
+        self._pos_sigma = sigma
+        self._edge = -1
+        self._update()
 
     def _run_consistent(self, sigma: float) -> bool:
-        """The run's fixes move as the odometry says (each displacement from the first fix)."""
+        """The run's fixes move as far as the odometry says, each from the first fix. Lengths, not
+        vectors: an estimate that is lost is often turned too (a bend in a tunnel)."""
         _, x0, y0, k0 = self._rejected_run[0]
         p0 = self._online[k0]
         for _, x, y, k in self._rejected_run[1:]:
             p = self._online[k]
             if p is None or p0 is None:
                 return False
-            dg = np.array([x - x0, y - y0])
-            do = np.array([p.x() - p0.x(), p.y() - p0.y()])
-            if np.linalg.norm(dg - do) > self.cfg.gps_gate_sigma * math.sqrt(2.0) * sigma + 0.05 * np.linalg.norm(do):
+            dg = math.hypot(x - x0, y - y0)
+            do = math.hypot(p.x() - p0.x(), p.y() - p0.y())
+            if abs(dg - do) > self.cfg.gps_gate_sigma * math.sqrt(2.0) * sigma + 0.05 * do:
                 return False
         return True
 

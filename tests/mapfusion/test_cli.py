@@ -109,10 +109,10 @@ def test_simulate_bad_input_exits_2(tmp_path, text, needle):
 # ----------------------------------------------------------------------------- fuse
 @pytest.fixture(scope="module")
 def sim_run(tmp_path_factory):
-    """A short simulated drive on the tunnel map with GPS throughout (so the engine initialises)."""
+    """A short simulated drive on the grid map with GPS throughout (so the engine initialises)."""
     d = tmp_path_factory.mktemp("run")
     sc = d / "s.toml"
-    sc.write_text('name = "f"\nmap = "tunnel"\nseed = 3\nduration_s = 150.0\n[route]\nedges = ["1", "3"]\n'
+    sc.write_text('name = "f"\nmap = "grid"\nseed = 3\nduration_s = 150.0\nmin_route_m = 1000.0\n'
                   '[gps]\nmode = "continuous"\n')
     r = runner.invoke(app, ["simulate", str(sc), "--out", str(d / "run")])
     assert r.exit_code == 0, r.output
@@ -125,7 +125,7 @@ def test_fuse_writes_an_estimate_near_the_truth(sim_run, tmp_path):
     from mapfusion.metrics import associate
 
     out = tmp_path / "est.tum"
-    r = runner.invoke(app, ["fuse", "--map", "tunnel", "--odometry", str(sim_run / "odometry.tum"),
+    r = runner.invoke(app, ["fuse", "--map", "grid", "--odometry", str(sim_run / "odometry.tum"),
                             "--gps", str(sim_run / "gps.csv"), "--out", str(out), "--smoothed", str(tmp_path / "s.tum")])
     assert r.exit_code == 0, r.output
     te, xe, _ = read_tum(out)
@@ -133,7 +133,7 @@ def test_fuse_writes_an_estimate_near_the_truth(sim_run, tmp_path):
     ia, ib = associate(te, tt)
     assert len(ia) > 0.5 * len(tt)
     err = np.hypot(*(xe[ia, :2] - xt[ib, :2]).T)
-    assert np.sqrt(np.mean(err**2)) < 10.0  # GPS throughout at σ = 2 m
+    assert np.sqrt(np.mean(err**2)) < 5.0  # GPS throughout at σ = 2 m
     assert (tmp_path / "s.tum").stat().st_size > 0
 
 
@@ -146,11 +146,11 @@ def test_fuse_reads_kitti_camera_poses(sim_run, tmp_path):
     cam = body_to_camera(tum_to_matrices(xyz, q))
     (tmp_path / "poses.txt").write_text("\n".join(" ".join(f"{v:.9f}" for v in m[:3, :4].ravel()) for m in cam) + "\n")
     (tmp_path / "times.txt").write_text("\n".join(f"{v:.6f}" for v in t) + "\n")
-    args = ["fuse", "--map", "tunnel", "--odometry", str(tmp_path / "poses.txt"), "--odometry-format", "kitti",
+    args = ["fuse", "--map", "grid", "--odometry", str(tmp_path / "poses.txt"), "--odometry-format", "kitti",
             "--times", str(tmp_path / "times.txt"), "--odometry-frame", "camera", "--gps", str(sim_run / "gps.csv")]
     r = runner.invoke(app, args + ["--out", str(tmp_path / "k.tum")])
     assert r.exit_code == 0, r.output
-    r2 = runner.invoke(app, ["fuse", "--map", "tunnel", "--odometry", str(sim_run / "odometry.tum"),
+    r2 = runner.invoke(app, ["fuse", "--map", "grid", "--odometry", str(sim_run / "odometry.tum"),
                              "--gps", str(sim_run / "gps.csv"), "--out", str(tmp_path / "b.tum")])
     assert r2.exit_code == 0
     _, a, _ = read_tum(tmp_path / "k.tum")
@@ -172,7 +172,7 @@ def test_fuse_bad_kitti_lines_exit_2(sim_run, tmp_path, mutate, needle):
     mutate(poses)
     times = tmp_path / "times.txt"
     times.write_text("0.0\n0.1\n0.2\n")
-    r = runner.invoke(app, ["fuse", "--map", "tunnel", "--odometry", str(poses), "--odometry-format", "kitti",
+    r = runner.invoke(app, ["fuse", "--map", "grid", "--odometry", str(poses), "--odometry-format", "kitti",
                             "--times", str(times), "--gps", str(sim_run / "gps.csv"), "--out", str(tmp_path / "x.tum")])
     assert r.exit_code == 2
     assert "poses.txt" in r.stderr and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1
@@ -180,7 +180,7 @@ def test_fuse_bad_kitti_lines_exit_2(sim_run, tmp_path, mutate, needle):
 
 @pytest.mark.sumo
 def test_fuse_no_map_adds_no_priors(sim_run, tmp_path):
-    r = runner.invoke(app, ["fuse", "--map", "tunnel", "--odometry", str(sim_run / "odometry.tum"),
+    r = runner.invoke(app, ["fuse", "--map", "grid", "--odometry", str(sim_run / "odometry.tum"),
                             "--gps", str(sim_run / "gps.csv"), "--out", str(tmp_path / "n.tum"), "--no-map"])
     assert r.exit_code == 0 and "map priors 0" in r.stdout
 
@@ -199,3 +199,29 @@ def test_camera_body_round_trip():
     fwd = np.eye(4)
     fwd[2, 3] = 1.0
     assert np.allclose(camera_to_body(fwd[None])[0][:3, 3], [1.0, 0.0, 0.0])
+
+
+@pytest.mark.sumo
+def test_fuse_recovers_after_losing_track_in_a_tunnel(tmp_path):
+    """The vo loses track through the 700 m tunnel and re-initialises with a constant-velocity guess
+    that misses the tunnel's bend by hundreds of metres; the fixes after the tunnel must win."""
+    from mapfusion.formats import read_gps_csv, read_tum
+    from mapfusion.metrics import associate
+
+    sc = tmp_path / "s.toml"
+    sc.write_text('name = "t"\nmap = "tunnel"\nseed = 3\nduration_s = 150.0\n[route]\nedges = ["1", "3"]\n'
+                  '[gps]\nmode = "continuous"\n')
+    assert runner.invoke(app, ["simulate", str(sc), "--out", str(tmp_path / "run")]).exit_code == 0
+    run = tmp_path / "run"
+    r = runner.invoke(app, ["fuse", "--map", "tunnel", "--odometry", str(run / "odometry.tum"),
+                            "--gps", str(run / "gps.csv"), "--out", str(tmp_path / "e.tum")])
+    assert r.exit_code == 0, r.output
+    te, xe, _ = read_tum(tmp_path / "e.tum")
+    tt, xt, _ = read_tum(run / "truth.tum")
+    ia, ib = associate(te, tt)
+    err = np.hypot(*(xe[ia, :2] - xt[ib, :2]).T)
+    gps = read_gps_csv(run / "gps.csv")
+    exit_t = gps.t_s[np.argmax(np.diff(gps.t_s)) + 1]  # the first fix after the tunnel
+    late = te[ia] > exit_t + 15.0
+    assert late.sum() > 20
+    assert err[late].max() < 10.0, err[late].max()
