@@ -310,6 +310,44 @@ def RoadMapConfig_for(cfg):  # noqa: N802 - a small factory kept next to its one
 
 
 @app.command()
+def evaluate(
+    truth: Annotated[Path, typer.Option("--truth", help="Ground truth (TUM).")],
+    estimate: Annotated[Path, typer.Option("--estimate", help="Estimate (TUM), e.g. from mapfusion fuse.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON.")] = False,
+    max_dt_s: Annotated[float, typer.Option(help="Poses match when their times differ by at most this, seconds.")] = 0.02,
+    delocalization_m: Annotated[float, typer.Option(help="ATE above this counts as de-localised, metres.")] = 20.0,
+) -> None:
+    """ATE (the paper's), online error (no alignment; lateral and longitudinal parts) and RPE per 100 m."""
+    from .formats import FormatError, quaternion_to_yaw, read_tum
+    from .metrics import ate, associate, delocalized, online_error, rpe_per_100m
+
+    try:
+        tt, xt, qt = read_tum(truth)
+        te, xe, qe = read_tum(estimate)
+        ia, ib = associate(te, tt, max_dt_s)
+        if len(ia) < 3:
+            raise InputError(f"{estimate}: only {len(ia)} poses match {truth} in time (within {max_dt_s} s)")
+        a = ate(xt[ib], xe[ia])
+        yt, ye = quaternion_to_yaw(qt[ib]), quaternion_to_yaw(qe[ia])
+        on = online_error(xt[ib], yt, xe[ia])
+        rpe = rpe_per_100m(xt[ib], yt, xe[ia], ye)
+    except (FormatError, InputError) as exc:
+        _fail(str(exc))
+    out = {"frames": int(len(ia)), "ate_m": a, "delocalized": delocalized(a, delocalization_m),
+           "online_rmse_m": on.rmse_m, "online_max_m": on.max_m, "online_lateral_rmse_m": on.lateral_rmse_m,
+           "online_longitudinal_rmse_m": on.longitudinal_rmse_m, "rpe_per_100m_m": rpe}
+    if as_json:
+        print(json.dumps(out, indent=2))
+        return
+    t = Table(title=f"{estimate.name} against {truth.name}")
+    t.add_column("metric")
+    t.add_column("value", justify="right")
+    for k, v in out.items():
+        t.add_row(k, "–" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v)))
+    console.print(t)
+
+
+@app.command()
 def demo(
     map_name: Annotated[str, typer.Option("--map", help="Map to run on (built-in name or OSM file).")] = "helsinki",
 ) -> None:

@@ -1,0 +1,143 @@
+"""Metrics: ATE as the paper (and evo) computes it, online error, RPE, match rate."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from mapfusion.metrics import MetricsError, ate, match_rate, online_error, rpe_per_100m, zone_rmse
+
+evo_core = pytest.importorskip("evo.core", reason="evo is a test-only dependency (pip install -e '.[test]')")
+
+
+def _rand(seed: int, n: int = 150, z: float = 2.0):
+    rng = np.random.default_rng(seed)
+    gt = np.cumsum(rng.normal(0, 1, (n, 3)) * (5, 5, z), axis=0)
+    est = gt + rng.normal(0, 1.0, (n, 3))
+    return gt, est
+
+
+def _rigid(seed: int):
+    rng = np.random.default_rng(seed + 1)
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.random(random_state=seed).as_matrix(), rng.normal(0, 100, 3)
+
+
+def _evo_ape(gt, est):
+    from evo.core import metrics
+    from evo.core.trajectory import PoseTrajectory3D
+
+    n = len(gt)
+    q = np.tile([1.0, 0, 0, 0], (n, 1))
+    g2, e2 = gt.copy(), est.copy()
+    g2[:, 2] = 0.0
+    e2[:, 2] = 0.0
+    tg = PoseTrajectory3D(positions_xyz=g2, orientations_quat_wxyz=q, timestamps=np.arange(n, dtype=float))
+    te = PoseTrajectory3D(positions_xyz=e2, orientations_quat_wxyz=q, timestamps=np.arange(n, dtype=float))
+    te.align(tg, correct_scale=False)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((tg, te))
+    return ape.get_statistic(metrics.StatisticsType.rmse)
+
+
+@given(seed=st.integers(0, 10**6))
+def test_ate_equals_evo_on_random_trajectories(seed):
+    gt, est = _rand(seed)
+    assert ate(gt, est) == pytest.approx(_evo_ape(gt, est), abs=1e-6)
+
+
+@given(seed=st.integers(0, 10**6), yaw=st.floats(-math.pi, math.pi), tx=st.floats(-1e4, 1e4), ty=st.floats(-1e4, 1e4))
+def test_ate_invariant_to_a_rigid_motion_of_the_estimate(seed, yaw, tx, ty):
+    gt, est = _rand(seed, z=0.0)
+    c, s = math.cos(yaw), math.sin(yaw)
+    moved = est @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + (tx, ty, 3.0)
+    assert ate(gt, moved) == pytest.approx(ate(gt, est), abs=1e-6)
+
+
+@given(seed=st.integers(0, 10**6))
+def test_ate_zero_for_identical_and_rigidly_moved_copies(seed):
+    gt, _ = _rand(seed, z=0.0)
+    assert ate(gt, gt) == pytest.approx(0.0, abs=1e-9)
+    yaw = (seed % 628) / 100.0
+    c, s = math.cos(yaw), math.sin(yaw)
+    assert ate(gt, gt @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + 50.0) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_ate_hand_computed():
+    # truth on a line; the estimate is the truth plus +1, −1, −1, +1 m across it. Those offsets have
+    # zero mean and zero correlation with x (Σ x·o = 0 − 10 − 20 + 30 = 0), so the cross-covariance
+    # of the centred pair is diagonal, the best rigid alignment is the identity, every residual is
+    # 1 m and the RMSE is exactly 1
+    gt = np.array([[0, 0, 0], [10, 0, 0], [20, 0, 0], [30, 0, 0]], float)
+    est = gt + np.array([[0, 1, 0], [0, -1, 0], [0, -1, 0], [0, 1, 0]], float)
+    assert ate(gt, est) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_ate_bad_input():
+    with pytest.raises(MetricsError):
+        ate(np.zeros((2, 3)), np.zeros((2, 3)))
+    with pytest.raises(MetricsError):
+        ate(np.zeros((5, 3)), np.full((5, 3), np.nan))
+    with pytest.raises(MetricsError):
+        ate(np.zeros((5, 3)), np.zeros((4, 3)))
+
+
+def test_online_error_parts():
+    gt = np.column_stack([np.arange(10.0), np.zeros(10)])
+    est = gt + (0.0, 2.0)  # 2 m to the left of an eastbound truth: all lateral
+    e = online_error(gt, np.zeros(10), est)
+    assert e.rmse_m == pytest.approx(2.0) and e.lateral_rmse_m == pytest.approx(2.0) and e.longitudinal_rmse_m == pytest.approx(0.0)
+    e2 = online_error(gt, np.full(10, math.pi / 2), est)  # the same offset, northbound truth: all along
+    assert e2.longitudinal_rmse_m == pytest.approx(2.0) and e2.lateral_rmse_m == pytest.approx(0.0)
+    assert zone_rmse(gt, est, np.zeros(10, bool)) is None
+    assert zone_rmse(gt, est, np.arange(10) < 3) == pytest.approx(2.0)
+
+
+def test_rpe_zero_for_a_rigid_copy_and_sensitive_to_drift():
+    t = np.arange(0, 500.0)
+    gt = np.column_stack([t, np.zeros_like(t)])
+    yaw = np.zeros_like(t)
+    c, s = math.cos(0.5), math.sin(0.5)
+    moved = gt @ np.array([[c, -s], [s, c]]).T + 7.0
+    assert rpe_per_100m(gt, yaw, moved, yaw + 0.5) == pytest.approx(0.0, abs=1e-9)
+    drifting = np.column_stack([t * 1.01, np.zeros_like(t)])  # 1% scale error: 1 m per 100 m
+    assert rpe_per_100m(gt, yaw, drifting, yaw) == pytest.approx(1.0, rel=0.02)
+    assert rpe_per_100m(gt[:50], yaw[:50], gt[:50], yaw[:50]) is None
+
+
+def test_match_rate():
+    assert match_rate(np.array([1, 1, -1, 2]), np.array([1, 2, 7, 2])) == pytest.approx(2 / 3)
+    assert match_rate(np.array([-1, -1]), np.array([1, 2])) is None
+
+
+@pytest.mark.sumo
+def test_ate_equals_evo_on_a_simulated_run():
+    from mapfusion import RoadMap
+    from mapfusion.config import FusionConfig
+    from mapfusion.formats import GpsFixes
+    from mapfusion.metrics import associate
+    from mapfusion.runner import fuse
+    from sim.drive import run_drive
+    from sim.scenario import scenario_from_dict
+    from sim.sensors import Truth, synthesise
+
+    sc = scenario_from_dict({"name": "evo", "map": "grid", "seed": 4, "duration_s": 200.0, "min_route_m": 1000.0,
+                             "weather": {"kind": "rain"}}, "test")
+    road = RoadMap.from_osm(sc.map)
+    drive = run_drive(sc, road)
+    truth = Truth.from_track(drive.ego, gps=sc.gps)
+    sensors = synthesise(sc, truth)
+    lat, lon = road.projection.to_geo(sensors.gps.x_m, sensors.gps.y_m)
+    fixes = GpsFixes(sensors.gps.t_s, np.asarray(lat), np.asarray(lon), np.full(len(lat), np.nan), sensors.gps.sigma_m)
+    res = fuse(road, sensors.odometry.t_s, sensors.odometry.poses, fixes, FusionConfig())
+    ok = [i for i, p in enumerate(res.online) if p is not None]
+    est = np.array([[res.online[i].x(), res.online[i].y(), res.online[i].z()] for i in ok])
+    ia, ib = associate(res.t_s[ok], drive.ego.t_s)
+    gt = np.column_stack([drive.ego.x_m, drive.ego.y_m, drive.ego.z_m])[ib]
+    assert len(ia) > 500
+    assert ate(gt, est[ia]) == pytest.approx(_evo_ape(gt, est[ia]), abs=1e-6)
