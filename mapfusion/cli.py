@@ -347,77 +347,138 @@ def evaluate(
     console.print(t)
 
 
-@app.command()
-def demo(
-    map_name: Annotated[str, typer.Option("--map", help="Map to run on (built-in name or OSM file).")] = "helsinki",
-) -> None:
-    """The main job on the bundled Helsinki map.
+def _paper_table(rows: list[dict], title: str) -> Table:
+    """Runs as columns, rows odometry / + Map-Fusion / reduction (ATE, m); x = de-localised; the
+    average leaves the de-localised runs out, as the paper's tables do."""
+    t = Table(title=title, show_lines=False)
+    t.add_column("ATE (m)")
+    ok = [r for r in rows if "ate_odometry_m" in r]
+    for r in rows:
+        t.add_column(r["scenario"], justify="right")
+    t.add_column("Avg", justify="right", style="bold")
 
-    Today it builds the road map and prints its statistics; the full drive (simulation, fusion,
-    table and plot) lands with the engine.
-    """
-    from .maps import resolve_map
-    from .roadmap import RoadMap
+    def cell(r, key, flag):
+        if "ate_odometry_m" not in r:
+            return "failed"
+        return "x" if r[flag] else f"{r[key]:.2f}"
+
+    kept_o = [r["ate_odometry_m"] for r in ok if not r["delocalized_odometry"]]
+    kept_m = [r["ate_mapfusion_m"] for r in ok if not r["delocalized_mapfusion"]]
+    avg = lambda v: f"{sum(v) / len(v):.2f}" if v else "–"  # noqa: E731
+    t.add_row("odometry", *[cell(r, "ate_odometry_m", "delocalized_odometry") for r in rows], avg(kept_o))
+    t.add_row("+ Map-Fusion", *[cell(r, "ate_mapfusion_m", "delocalized_mapfusion") for r in rows], avg(kept_m))
+    red = []
+    for r in rows:
+        if "ate_odometry_m" not in r or r["delocalized_odometry"] or r["delocalized_mapfusion"]:
+            red.append("NA")
+        else:
+            red.append(f"{r['ate_reduction_m']:.2f}")
+    both = [r for r in ok if not r["delocalized_odometry"] and not r["delocalized_mapfusion"]]
+    t.add_row("reduction", *red, avg([r["ate_reduction_m"] for r in both]), style="italic")
+    return t
+
+
+@app.command()
+def run(
+    paths: Annotated[list[Path], typer.Argument(help="Scenario or family TOML files.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Directory for the run directories and results.jsonl.")],
+    no_plot: Annotated[bool, typer.Option("--no-plot", help="Skip plot.png in each run directory.")] = False,
+) -> None:
+    """Each scenario (or every run of a family): simulate, baseline and Map-Fusion, evaluate; one run
+    directory each, results.jsonl, and the paper-style table."""
+    import traceback
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from sim.run import run_scenario
+    from sim.scenario import load_family
 
     try:
-        path = resolve_map(map_name)
-        with err_console.status(f"building road map of {path.name} ..."):
-            road = RoadMap.from_osm(path)
+        families = [load_family(p) for p in paths]
     except InputError as exc:
         _fail(str(exc))
-    console.print(_stats_table(road.stats(), f"Road map: {path}"))
+    scenarios = [sc for fam in families for sc in fam.scenarios]
+    names = [sc.name for sc in scenarios]
+    if len(set(names)) != len(names):
+        _fail("two runs share a name: " + ", ".join(sorted({n for n in names if names.count(n) > 1})))
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=err_console, disable=not err_console.is_terminal) as bar:
+        task = bar.add_task("runs", total=len(scenarios))
+        for sc in scenarios:
+            bar.update(task, description=sc.name)
+            try:
+                row = run_scenario(sc, out / sc.name, plot=not no_plot).metrics
+            except InputError as exc:
+                row = {"scenario": sc.name, "seed": sc.seed, "error": str(exc)}
+            except Exception as exc:  # a failed run never loses the others
+                row = {"scenario": sc.name, "seed": sc.seed, "error": f"{type(exc).__name__}: {exc}",
+                       "traceback": traceback.format_exc(limit=5)}
+            rows.append(row)
+            with open(out / "results.jsonl", "a") as f:
+                f.write(json.dumps(row) + "\n")
+            bar.advance(task)
+    console.print(_paper_table(rows, f"ATE over {len(rows)} run(s) → {out}"))
+    failed = [r for r in rows if "error" in r]
+    for r in failed:
+        err_console.print(f"[red]{r['scenario']} failed:[/] {r['error']}", highlight=False)
+    if failed and len(failed) == len(rows):
+        raise typer.Exit(1)
 
 
 @app.command()
-def bench(
-    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object per benchmark.")] = False,
-    queries: Annotated[int, typer.Option(help="Radius queries per map.", min=100)] = 20000,
-    sim: Annotated[bool, typer.Option("--sim", help="Also time SUMO on Helsinki: ego alone and with 200 vehicles.")] = False,
-    engine_s: Annotated[float, typer.Option("--engine-s", help="Length of the engine's benchmark drive, seconds.", min=60.0)] = 3600.0,
+def plot(
+    run_dir: Annotated[Path, typer.Argument(help="A run directory (from mapfusion run or simulate).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="PNG to write (1200 × 1000 px).")],
 ) -> None:
-    """Throughput benchmarks on Helsinki and a 10 km × 15 km city: road-map build, 20 m radius
-    queries, and matches per second (batch and single calls), one core."""
-    from .bench import bench_match, bench_roadmap, big_city_map
-    from .maps import resolve_map
-    from .roadmap import RoadMap
+    """Roads, truth, odometry, Map-Fusion, GPS fixes, GPS-denied zones and map priors; error over distance."""
+    from .plot import plot_run
 
-    from .bench import bench_engine
+    try:
+        plot_run(run_dir, out)
+    except InputError as exc:
+        _fail(str(exc))
+    console.print(f"wrote {out}")
 
-    results, matches = [], []
-    with err_console.status("benchmarking road maps and the matcher ..."):
-        for path in (resolve_map("helsinki"), big_city_map()):
-            results.append(bench_roadmap(path, n_queries=queries))
-            matches.append(bench_match(RoadMap.from_osm(path)))
-    with err_console.status(f"benchmarking the engine on a {engine_s:.0f} s drive ..."):
-        eng = bench_engine(RoadMap.from_osm(results[1].map), duration_s=engine_s)
-    sims = []
-    if sim:
-        from sim.bench import bench_sim
 
-        with err_console.status("timing SUMO drives (600 s simulated each) ..."):
-            sims = [bench_sim(n, fleet) for n, fleet in ((0, False), (200, False), (200, True))]
-    if as_json:
-        for r in results + matches + [eng] + sims:
-            print(json.dumps(r.to_dict()))
-        return
-    if sims:
-        ts = Table(title="SUMO on Helsinki (600 s simulated, route planning included)")
-        for col in ("vehicles", "recorded", "wall s", "simulated s per wall s"):
-            ts.add_column(col, justify="right")
-        for b in sims:
-            ts.add_row(str(b.vehicles), "all (fleet)" if b.fleet else "ego", f"{b.wall_s:.2f}", f"{b.realtime_factor:,.0f}")
-        console.print(ts)
-    t = Table(title="Road map and matcher benchmarks (one core)")
-    for col in ("map", "way-points", "build s", "20 m query median µs", "p90 µs", "matches/s batch", "matches/s single"):
-        t.add_column(col, justify="right")
-    for r, m in zip(results, matches):
-        t.add_row(Path(r.map).name, f"{r.waypoints:,}", f"{r.build_s:.2f}", f"{r.query_median_us:.1f}",
-                  f"{r.query_p90_us:.1f}", f"{m.batch_matches_per_s:,.0f}", f"{m.single_matches_per_s:,.0f}")
-    console.print(t)
-    console.print("targets: city build < 20 s, median query < 20 µs, ≥ 50,000 matches/s")
-    console.print(f"engine (fixed-lag, map priors, {eng.frames:,} frames at 10 Hz on the city): {eng.frames_per_s:,.0f} frames/s "
-                  f"(target ≥ 2,000); last 10% {eng.last_10pct_us:.0f} µs/frame vs first 10% {eng.first_10pct_us:.0f} µs/frame "
-                  f"= {eng.growth:.2f}× (target ≤ 1.2×); {eng.map_priors} map priors")
+#: The demo drive: Helsinki in rain, an 80 m GPS-denied, visually degraded zone (an underpass),
+#: stereo VO, GPS for the first 120 s only. Seed 7 is a drive where the zone falls on a stretch the
+#: VO can bridge; on longer zones a VO that loses track de-localises, as the paper's DROID-SLAM does.
+DEMO_SCENARIO = {
+    "name": "demo-helsinki-rain",
+    "map": "helsinki",
+    "seed": 7,
+    "duration_s": 480.0,
+    "min_route_m": 2000.0,
+    "weather": {"kind": "rain"},
+    "odometry": {"kind": "vo"},
+    "gps": {"mode": "init_only"},
+    "tunnels": [{"start_m": 700.0, "end_m": 780.0}],
+}
+
+
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")] = Path("mapfusion-demo"),
+) -> None:
+    """The main job on the bundled Helsinki map: one rain drive with a GPS-denied zone, VO odometry,
+    GPS at the start only; baseline and Map-Fusion, the paper-style table and plot.png."""
+    from sim.run import run_scenario
+    from sim.scenario import scenario_from_dict
+
+    sc = scenario_from_dict(DEMO_SCENARIO, "the demo scenario")
+    with err_console.status("SUMO drive, sensors, baseline and Map-Fusion ..."):
+        outcome = run_scenario(sc, out)
+    m = outcome.metrics
+    console.print(_paper_table([m], "Demo: Helsinki, rain, 80 m GPS-denied zone, VO, GPS at start only"))
+    if "online_rmse_odometry_m" in m:
+        console.print(
+            f"online error (what a tracker sees, no alignment): odometry {m['online_rmse_odometry_m']:.1f} m RMSE, "
+            f"Map-Fusion {m['online_rmse_mapfusion_m']:.1f} m; {m['map_priors']} map priors; "
+            f"{m['driven_m'] / 1000:.2f} km in {m['duration_s']:.0f} s"
+        )
+    console.print(f"run directory: {out}  (plot: {out / 'plot.png'})")
 
 
 def main() -> None:

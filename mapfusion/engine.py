@@ -172,6 +172,7 @@ class MapFusion:
         self._pos_sigma = 0.0
         self._edge = -1  # the road edge the vehicle was last matched to
         self.map_prior_frames: list[int] = []
+        self.matched_way: list[int] = []  # OSM way the matcher chose at each frame (-1: none)
         self._yaw_sigma = math.radians(self.cfg.yaw_sigma_deg)
         self._mask = np.zeros(len(road), dtype=bool)
         self._robust = self._make_robust()
@@ -194,6 +195,7 @@ class MapFusion:
         self.counters.frames += 1
         self._scale_est.add_odometry(t, self._odo_abs.translation())
         self._online.append(None)
+        self.matched_way.append(-1)
         if not self.initialised:
             self._try_initialise()
             self._flush_gps()
@@ -527,6 +529,7 @@ class MapFusion:
         if m is None:
             return False
         self.counters.matches += 1
+        self.matched_way[k] = m.way_id
         width = m.lanes * self.cfg.lane_width_m
         r_pose, lateral = map_pose(m, pred)
         if lateral <= width:

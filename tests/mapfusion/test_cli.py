@@ -225,3 +225,55 @@ def test_fuse_recovers_after_losing_track_in_a_tunnel(tmp_path):
     late = te[ia] > exit_t + 15.0
     assert late.sum() > 20
     assert err[late].max() < 10.0, err[late].max()
+
+
+# ----------------------------------------------------------------------------- run, plot, demo
+CONTRACT_FILES = ("scenario.toml", "truth.tum", "truth.csv", "odometry.tum", "gps.csv", "imu.csv",
+                  "estimate_odometry.tum", "estimate_mapfusion.tum", "metrics.json", "plot.png")
+METRIC_KEYS = ("scenario", "seed", "map", "weather", "odometry", "gps_mode", "route_length_m", "duration_s", "frames",
+               "ate_odometry_m", "ate_mapfusion_m", "ate_reduction_m", "delocalized_odometry", "delocalized_mapfusion",
+               "online_rmse_odometry_m", "online_rmse_mapfusion_m", "online_max_mapfusion_m",
+               "tunnel_rmse_mapfusion_m", "match_rate", "map_priors", "fusion_frames_per_s")
+
+
+@pytest.mark.sumo
+def test_run_writes_every_contract_file(tmp_path):
+    sc = tmp_path / "s.toml"
+    sc.write_text('name = "r1"\nmap = "grid"\nseed = 2\nduration_s = 200.0\nmin_route_m = 1200.0\n'
+                  '[weather]\nkind = "rain"\n[[tunnels]]\nstart_m = 400.0\nend_m = 450.0\n')
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "r2"\nmap = "grid"\n[route]\nedges = ["nope"]\n')
+    out = tmp_path / "out"
+    r = runner.invoke(app, ["run", str(sc), str(bad), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    for f in CONTRACT_FILES:
+        assert (out / "r1" / f).stat().st_size > 0, f
+    metrics = json.loads((out / "r1" / "metrics.json").read_text())
+    for k in METRIC_KEYS:
+        assert k in metrics, k
+    lines = (out / "results.jsonl").read_text().splitlines()
+    rows = [json.loads(line) for line in lines]  # whole lines, valid JSON
+    assert [r["scenario"] for r in rows] == ["r1", "r2"]
+    assert "error" in rows[1] and "nope" in rows[1]["error"]  # the failed run is recorded, the other kept
+    assert "odometry" in r.stdout and "+ Map-Fusion" in r.stdout and "reduction" in r.stdout
+    from PIL import Image
+
+    assert Image.open(out / "r1" / "plot.png").size == (1200, 1000)
+    # mapfusion plot redraws it
+    r2 = runner.invoke(app, ["plot", str(out / "r1"), "--out", str(tmp_path / "p.png")])
+    assert r2.exit_code == 0 and Image.open(tmp_path / "p.png").size == (1200, 1000)
+
+
+def test_plot_bad_input(tmp_path):
+    r = runner.invoke(app, ["plot", str(tmp_path), "--out", str(tmp_path / "p.png")])
+    assert r.exit_code == 2 and "not a run directory" in r.stderr
+
+
+@pytest.mark.sumo
+def test_demo_runs_and_map_fusion_helps(tmp_path):
+    r = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo")])
+    assert r.exit_code == 0, r.output
+    m = json.loads((tmp_path / "demo" / "metrics.json").read_text())
+    assert (tmp_path / "demo" / "plot.png").stat().st_size > 10000
+    # the demo drive is chosen to show the method at work: the map must help there
+    assert m["ate_mapfusion_m"] < m["ate_odometry_m"] and m["online_rmse_mapfusion_m"] < m["online_rmse_odometry_m"]

@@ -1,0 +1,133 @@
+"""One scenario end to end: simulate, synthesise the sensors, run the baseline and Map-Fusion,
+evaluate, and write the run directory (DESIGN "File formats", contract)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mapfusion.formats import GpsFixes, write_tum
+from mapfusion.metrics import associate, ate, delocalized, match_rate, online_error, rpe_per_100m, zone_rmse
+from mapfusion.roadmap import RoadMap, RoadMapConfig
+from mapfusion.runner import FusionResult, fuse, poses_to_arrays
+
+from .drive import DriveResult, run_drive
+from .network import build_network
+from .rundir import write_sensors, write_truth
+from .scenario import Scenario
+from .sensors import SensorData, Truth, synthesise, under_bridges
+
+
+@dataclass
+class RunOutcome:
+    metrics: dict
+    drive: DriveResult
+    sensors: SensorData
+    baseline: FusionResult
+    mapfusion: FusionResult
+    road: RoadMap
+
+
+def _online_arrays(res: FusionResult):
+    ok = [i for i, p in enumerate(res.online) if p is not None]
+    xyz = np.array([[res.online[i].x(), res.online[i].y(), res.online[i].z()] for i in ok]).reshape(-1, 3)
+    yaw = np.array([res.online[i].rotation().yaw() for i in ok])
+    return res.t_s[ok], xyz, yaw, ok
+
+
+def _evaluate(res: FusionResult, drive: DriveResult, prefix: str, deloc_m: float) -> dict:
+    t, xyz, yaw, _ = _online_arrays(res)
+    e = drive.ego
+    ia, ib = associate(t, e.t_s)
+    gt = np.column_stack([e.x_m, e.y_m, e.z_m])[ib]
+    a = ate(gt, xyz[ia])
+    on = online_error(gt, e.yaw_rad[ib], xyz[ia])
+    tun = zone_rmse(gt, xyz[ia], e.in_tunnel[ib])
+    rpe = rpe_per_100m(gt, e.yaw_rad[ib], xyz[ia], yaw[ia])
+    return {f"ate_{prefix}_m": a, f"delocalized_{prefix}": delocalized(a, deloc_m),
+            f"online_rmse_{prefix}_m": on.rmse_m, f"online_max_{prefix}_m": on.max_m,
+            f"online_lateral_rmse_{prefix}_m": on.lateral_rmse_m,
+            f"online_longitudinal_rmse_{prefix}_m": on.longitudinal_rmse_m,
+            f"tunnel_rmse_{prefix}_m": tun, f"rpe_100m_{prefix}_m": rpe}
+
+
+def fixes_of(sensors: SensorData, road: RoadMap) -> GpsFixes:
+    g = sensors.gps
+    lat, lon = road.projection.to_geo(g.x_m, g.y_m)
+    return GpsFixes(g.t_s, np.asarray(lat), np.asarray(lon), np.asarray(g.alt_m), g.sigma_m)
+
+
+def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None, plot: bool = True) -> RunOutcome:
+    """Simulate ``sc``, run the baseline (map priors off) and Map-Fusion on the same sensors and
+    GPS, evaluate both, and (with ``out_dir``) write every file of the run directory."""
+    cfg = sc.mapfusion
+    road = RoadMap.from_osm(sc.map, RoadMapConfig(lane_width_m=cfg.lane_width_m))
+    net = build_network(sc.map)
+    drive = run_drive(sc, road, net, progress=progress)
+    bridges = under_bridges(road, drive.ego.x_m, drive.ego.y_m, drive.ego.osm_way)
+    truth = Truth.from_track(drive.ego, bridges, sc.gps)
+    sensors = synthesise(sc, truth)
+    fixes = fixes_of(sensors, road)
+    odo = sensors.odometry
+    base = fuse(road, odo.t_s, odo.poses, fixes, dataclasses.replace(cfg, use_map=False))
+    t0 = time.perf_counter()
+    mf = fuse(road, odo.t_s, odo.poses, fixes, cfg)
+    fusion_fps = len(odo.t_s) / max(time.perf_counter() - t0, 1e-9)
+    metrics: dict = {
+        "scenario": sc.name, "seed": sc.seed, "map": Path(sc.map).name, "weather": sc.weather.kind.value,
+        "odometry": sc.odometry.kind.value, "gps_mode": sc.gps.mode.value,
+        "route_length_m": drive.route_length_m, "duration_s": float(drive.ego.t_s[-1] - drive.ego.t_s[0]),
+        "frames": int(len(drive.ego)), "driven_m": float(drive.ego.distance_m[-1]),
+    }
+    if not (base.engine.initialised and mf.engine.initialised):
+        metrics.update({"error": "the engine never initialised (too few GPS fixes while moving)"})
+    else:
+        mb = _evaluate(base, drive, "odometry", cfg.delocalization_m)
+        mm = _evaluate(mf, drive, "mapfusion", cfg.delocalization_m)
+        metrics.update(mb)
+        metrics.update(mm)
+        metrics["ate_reduction_m"] = mb["ate_odometry_m"] - mm["ate_mapfusion_m"]
+        # match rate: frames outside junctions whose matched way is the way SUMO drives on
+        frames = odo.frame_index
+        matched = np.asarray(mf.engine.matched_way)
+        true_way = drive.ego.osm_way[frames]
+        sel = matched >= 0
+        metrics["match_rate"] = match_rate(true_way[sel], matched[sel]) if sel.any() else None
+        c = mf.engine.counters
+        metrics.update({"map_priors": c.map_priors, "gps_used": c.gps_used,
+                        "gps_rejected": c.gps_rejected_gate + c.gps_rejected_invalid,
+                        "recoveries": c.recoveries, "gps_relocalisations": c.gps_relocalisations,
+                        "scale": mf.engine.scale, "initialised_at_s": mf.engine.initialised_at})
+    metrics["fusion_frames_per_s"] = fusion_fps
+    for k, v in list(metrics.items()):
+        if isinstance(v, float) and not math.isfinite(v):
+            metrics[k] = None
+    outcome = RunOutcome(metrics, drive, sensors, base, mf, road)
+    if out_dir is not None:
+        write_run(Path(out_dir), sc, outcome, plot=plot)
+    return outcome
+
+
+def write_run(d: Path, sc: Scenario, o: RunOutcome, plot: bool = True) -> None:
+    write_truth(d, sc, o.drive)
+    write_sensors(d, o.sensors, o.road.projection)
+    for name, res in (("estimate_odometry.tum", o.baseline), ("estimate_mapfusion.tum", o.mapfusion)):
+        t, _, _, ok = _online_arrays(res)
+        if len(ok):
+            xyz, q = poses_to_arrays([res.online[i] for i in ok])
+            write_tum(d / name, t, xyz, q, header=f"{name[:-4]}: online (causal) estimates, map ENU frame")
+    (d / "metrics.json").write_text(json.dumps(o.metrics, indent=2) + "\n")
+    eng = o.mapfusion.engine
+    events = {"map_prior_t": [float(eng._t[k]) for k in eng.map_prior_frames], "counters": eng.counters.as_dict(),
+              "initialised_at_s": eng.initialised_at, "scale": eng.scale, "scale_sigma": eng.scale_sigma}
+    (d / "fusion_events.json").write_text(json.dumps(events, indent=2) + "\n")
+    if plot:
+        from mapfusion.plot import plot_run
+
+        plot_run(d, d / "plot.png", road=o.road)
