@@ -258,6 +258,9 @@ class FusionConfig:
                                       "its D is lower by more than this.", unit="m", min=0.0)
     odometry_priors: bool = param(True, "Add the odometry estimate as a prior when the marginal positional σ "
                                   "exceeds the road width.", source="paper IV.B")
+    relocalise_after_fixes: int = param(3, "Consecutive gated fixes that agree with each other and with the "
+                                        "odometry's distances before the estimate is re-initialised from GPS.", min=2,
+                                        max=100, source="robustness (issue 6); by measurement")
     odometry_prior_every_s: float = param(1.0, "How often the marginal σ is checked for odometry priors.", unit="s",
                                           min=0.0, exclusive_min=True)
     loose_before_init: bool = param(False, "Frames before initialisation enter with odometry_sigma_before_init_m "

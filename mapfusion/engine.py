@@ -599,8 +599,9 @@ class MapFusion:
 
     def _gate_and_add(self, k: int, x: float, y: float, alt: float | None, sigma: float) -> None:
         """Mahalanobis gate. A run of rejected fixes that agree with each other means the estimate
-        is lost, not the GPS: after 5 within 10 s whose mutual displacements match the odometry's
-        within the gate, they are accepted (counted as a recovery)."""
+        is lost, not the GPS: after ``relocalise_after_fixes`` in a row (within 60 s) whose distances
+        from the first match the odometry's within the gate, the estimate is re-initialised from
+        them (counted)."""
         pred = self._online[k] or self._online[-1]
         spread = math.sqrt(sigma * sigma + self._pos_sigma * self._pos_sigma + 1.0)
         if math.hypot(pred.x() - x, pred.y() - y) <= self.cfg.gps_gate_sigma * spread:
@@ -609,8 +610,9 @@ class MapFusion:
             return
         self.counters.gps_rejected_gate += 1
         t = self._t[k]
-        self._rejected_run = [r for r in self._rejected_run if t - r[0] <= 10.0] + [(t, x, y, k)]
-        if len(self._rejected_run) >= 5 and self._run_consistent(sigma):
+        # the run is broken by any accepted fix; with GPS every 5 s, three fixes span 10 s
+        self._rejected_run = [r for r in self._rejected_run if t - r[0] <= 60.0] + [(t, x, y, k)]
+        if len(self._rejected_run) >= self.cfg.relocalise_after_fixes and self._run_consistent(sigma):
             self.counters.gps_relocalisations += 1
             log.warning("t=%.1f s: %d consistent GPS fixes disagree with the estimate: re-localising on GPS",
                         t, len(self._rejected_run))

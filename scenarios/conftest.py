@@ -1,0 +1,79 @@
+"""pytest scenarios/: families run once per session (two worker processes), each run a test case.
+
+``--update-baselines`` rewrites scenarios/baselines.json from this session's results; nothing
+else ever writes it. The paper-style table of every family is printed at the end.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+HERE = Path(__file__).resolve().parent
+FAMILIES = HERE / "families"
+BASELINES = HERE / "baselines.json"
+_RESULTS: dict[str, dict[str, dict]] = {}
+
+
+def pytest_addoption(parser):
+    parser.addoption("--update-baselines", action="store_true", default=False,
+                     help="rewrite scenarios/baselines.json from this run's results")
+    parser.addoption("--scenario-workers", type=int, default=2, help="worker processes for the family runs")
+
+
+def family_results(config, name: str) -> dict[str, dict]:
+    """Metrics of every run of a family, computed once per session."""
+    if name not in _RESULTS:
+        from sim.batch import run_many
+        from sim.scenario import load_family
+
+        fam = load_family(FAMILIES / f"{name}.toml")
+        rows = run_many(list(fam.scenarios), workers=config.getoption("--scenario-workers"))
+        _RESULTS[name] = {r["scenario"]: r for r in rows}
+    return _RESULTS[name]
+
+
+def load_baselines() -> dict:
+    return json.loads(BASELINES.read_text()) if BASELINES.exists() else {}
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if session.config.getoption("--update-baselines") and _RESULTS:
+        data = load_baselines()
+        for fam in _RESULTS.values():
+            for name, r in fam.items():
+                if "error" not in r:
+                    data[name] = {k: r[k] for k in ("ate_odometry_m", "ate_mapfusion_m", "delocalized_odometry",
+                                                    "delocalized_mapfusion", "match_rate")}
+        BASELINES.write_text(json.dumps(dict(sorted(data.items())), indent=1) + "\n")
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    if not _RESULTS:
+        return
+    from io import StringIO
+
+    from rich.console import Console
+
+    from mapfusion.cli import _paper_table
+
+    buf = StringIO()
+    con = Console(file=buf, width=max(120, 16 * 8), force_terminal=False)
+    for fam, runs in _RESULTS.items():
+        rows = list(runs.values())
+        con.print(_paper_table(rows, f"family {fam}: ATE (m) per run", strip_prefix=f"{fam}-"))
+        ok = [r for r in rows if "error" not in r]
+        if ok:
+            import numpy as np
+
+            mo = np.mean([r["ate_odometry_m"] for r in ok])
+            mm = np.mean([r["ate_mapfusion_m"] for r in ok])
+            rates = [r["match_rate"] for r in ok if r.get("match_rate") is not None]
+            con.print(f"  mean ATE over all runs: odometry {mo:.2f} m, + Map-Fusion {mm:.2f} m "
+                      f"(reduction {100 * (1 - mm / mo):.0f}%); de-localised {sum(r['delocalized_odometry'] for r in ok)} → "
+                      f"{sum(r['delocalized_mapfusion'] for r in ok)} of {len(ok)}; match rate "
+                      f"{100 * np.mean(rates):.1f}%" if rates else "")
+    terminalreporter.write_sep("=", "scenario families")
+    terminalreporter.write(buf.getvalue())

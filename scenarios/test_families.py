@@ -1,0 +1,75 @@
+"""The scenario families: every run against its recorded baseline, and the method's claims per family.
+
+Regression rule per run (issue 8): Map-Fusion's ATE may not exceed its baseline by more than
+max(0.25 m, 10%); no de-localisation where the baseline had none; the match rate may not drop by
+more than 1 point. Claims (the paper's): rain and heavy rain reduce the mean ATE by at least 40%;
+in clear weather Map-Fusion is never worse than odometry by more than 0.3 m; at intersections the
+match rate is at least 97%. Claims the engine does not meet yet are strict expected failures with
+the measured figure, so that meeting them is noticed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sim.scenario import load_family
+
+from .conftest import FAMILIES, family_results, load_baselines
+
+pytestmark = pytest.mark.sumo
+
+FAMILY_NAMES = ("clear", "rain", "rain-tunnel", "heavy-rain", "intersections")
+RUNS = [(fam, sc.name) for fam in FAMILY_NAMES for sc in load_family(FAMILIES / f"{fam}.toml").scenarios]
+
+
+@pytest.mark.parametrize("family,run", RUNS, ids=[r for _, r in RUNS])
+def test_run_does_not_regress(request, family, run):
+    r = family_results(request.config, family)[run]
+    assert "error" not in r, r.get("error")
+    if request.config.getoption("--update-baselines"):
+        return
+    base = load_baselines().get(run)
+    assert base is not None, f"no recorded baseline for {run}: run pytest scenarios --update-baselines"
+    limit = base["ate_mapfusion_m"] + max(0.25, 0.10 * base["ate_mapfusion_m"])
+    assert r["ate_mapfusion_m"] <= limit, f"ATE {r['ate_mapfusion_m']:.2f} m > {limit:.2f} m (baseline {base['ate_mapfusion_m']:.2f})"
+    if not base["delocalized_mapfusion"]:
+        assert not r["delocalized_mapfusion"], "de-localised where the baseline was not"
+    if base.get("match_rate") is not None and r.get("match_rate") is not None:
+        assert r["match_rate"] >= base["match_rate"] - 0.01, f"match rate {r['match_rate']:.3f} < {base['match_rate']:.3f} − 1 point"
+
+
+def _ok(request, family):
+    rows = [r for r in family_results(request.config, family).values() if "error" not in r]
+    assert rows, f"every run of {family} failed"
+    return rows
+
+
+def _reduction(rows) -> float:
+    mo = np.mean([r["ate_odometry_m"] for r in rows])
+    mm = np.mean([r["ate_mapfusion_m"] for r in rows])
+    return 1.0 - mm / mo
+
+
+def test_rain_reduces_mean_ate_by_40_percent(request):
+    assert _reduction(_ok(request, "rain")) >= 0.40
+
+
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-22: mean ATE reduced by only 6% (heavy-rain drives with GPS every 5 s; "
+                   "one Kotka run de-localises with and without the map); needs ≥ 40%")
+def test_heavy_rain_reduces_mean_ate_by_40_percent(request):
+    assert _reduction(_ok(request, "heavy-rain")) >= 0.40
+
+
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-22: worst run +1.50 m (clear-helsinki-s1); the map's local "
+                   "corrections survive the ATE's global alignment, the baseline's offset does not")
+def test_clear_never_worse_by_more_than_0_3_m(request):
+    rows = _ok(request, "clear")
+    assert max(r["ate_mapfusion_m"] - r["ate_odometry_m"] for r in rows) <= 0.3
+
+
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-22: match rate 96.9% over the runs (Helsinki's parallel "
+                   "carriageways: 73% on one run); needs ≥ 97%")
+def test_intersections_match_rate_at_least_97_percent(request):
+    rows = _ok(request, "intersections")
+    assert np.mean([r["match_rate"] for r in rows]) >= 0.97
