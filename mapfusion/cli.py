@@ -206,13 +206,15 @@ def scenarios_generate(
     weather: Annotated[Optional[list[str]], typer.Option("--weather", help="clear | rain | heavy_rain, repeatable.")] = None,
     odometry: Annotated[Optional[list[str]], typer.Option("--odometry", help="vo | vio, repeatable.")] = None,
     gps_mode: Annotated[Optional[list[str]], typer.Option("--gps-mode", help="init_only | interval | continuous, repeatable.")] = None,
+    name: Annotated[Optional[str], typer.Option("--name", help="Name of the family (and prefix of its runs).")] = None,
 ) -> None:
     """Write a scenario family after one of the paper's datasets (any axis can be overridden)."""
     from sim.families import family_toml
     from sim.scenario import expand_family
 
     try:
-        text = family_toml(family, maps=maps, seeds=seeds, weather=weather, odometry=odometry, gps_mode=gps_mode)
+        text = family_toml(family, maps=maps, seeds=seeds, weather=weather, odometry=odometry, gps_mode=gps_mode,
+                           family_name=name)
         import tomllib
 
         fam = expand_family(tomllib.loads(text), str(out), Path.cwd())  # validates every run now

@@ -20,10 +20,12 @@ from .conftest import FAMILIES, family_results, load_baselines
 pytestmark = pytest.mark.sumo
 
 FAMILY_NAMES = ("clear", "rain", "rain-tunnel", "heavy-rain", "intersections")
-RUNS = [(fam, sc.name) for fam in FAMILY_NAMES for sc in load_family(FAMILIES / f"{fam}.toml").scenarios]
+FULL_NAMES = tuple(f"{f}-full" for f in FAMILY_NAMES)  # the larger set: pytest -m full scenarios/
+RUNS = [pytest.param(fam, sc.name, id=sc.name, marks=[pytest.mark.full] if fam in FULL_NAMES else [])
+        for fam in FAMILY_NAMES + FULL_NAMES for sc in load_family(FAMILIES / f"{fam}.toml").scenarios]
 
 
-@pytest.mark.parametrize("family,run", RUNS, ids=[r for _, r in RUNS])
+@pytest.mark.parametrize("family,run", RUNS)
 def test_run_does_not_regress(request, family, run):
     r = family_results(request.config, family)[run]
     assert "error" not in r, r.get("error")

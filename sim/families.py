@@ -60,9 +60,10 @@ PRESETS: dict[str, FamilyPreset] = {
 }
 
 
-def family_dict(name: str, maps=None, seeds=None, weather=None, odometry=None, gps_mode=None) -> dict:
+def family_dict(name: str, maps=None, seeds=None, weather=None, odometry=None, gps_mode=None,
+                family_name: str | None = None) -> dict:
     """The family as a TOML-ready mapping; any argument left None takes the preset's value.
-    ``seeds`` may be a count (1..N) or a list."""
+    ``seeds`` may be a count (1..N) or a list; ``family_name`` renames the family (and its runs)."""
     if name not in PRESETS:
         raise InputError(f"unknown family {name!r} (known: {', '.join(PRESETS)})")
     p = PRESETS[name]
@@ -83,7 +84,7 @@ def family_dict(name: str, maps=None, seeds=None, weather=None, odometry=None, g
         if len(axes[key]) == 1 and key != "map":
             section, _, leaf = key.partition(".")
             base.setdefault(section, {})[leaf] = axes.pop(key)[0]
-    fam = {"name": name, "seeds": list(seeds or p.seeds), "axes": axes}
+    fam = {"name": family_name or name, "seeds": list(seeds or p.seeds), "axes": axes}
     return {"family": fam, "base": base}
 
 
