@@ -127,13 +127,22 @@ def zone_rmse(truth_xy: np.ndarray, estimate_xy: np.ndarray, mask: np.ndarray) -
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 
 
-def match_rate(true_way: np.ndarray, matched_way: np.ndarray) -> float | None:
-    """Fraction of frames outside junctions (``true_way`` ≥ 0) matched to the way the truth is on."""
+def match_rate(true_way: np.ndarray, matched_way: np.ndarray, continuations: dict | None = None) -> float | None:
+    """Fraction of frames outside junctions (``true_way`` ≥ 0) matched to the way the truth is on.
+
+    With ``continuations`` (way → ways continuing it through a vertex of degree 2, see
+    :meth:`RoadMap.continuations`), a match on a way that merely continues the true one counts
+    too: OSM splits a road into ways anywhere, and a split that is no junction is the same road.
+    """
     true_way = np.asarray(true_way)
+    matched = np.asarray(matched_way)
     sel = true_way >= 0
     if not sel.any():
         return None
-    return float(np.mean(np.asarray(matched_way)[sel] == true_way[sel]))
+    ok = matched[sel] == true_way[sel]
+    if continuations:
+        ok |= np.array([int(m) in continuations.get(int(t), ()) for t, m in zip(true_way[sel], matched[sel])])
+    return float(np.mean(ok))
 
 
 def rpe_per_100m(truth_xy: np.ndarray, truth_yaw_rad: np.ndarray, estimate_xy: np.ndarray,

@@ -364,6 +364,23 @@ class RoadMap:
         cache[edge] = got
         return got
 
+    def continuations(self) -> dict[int, set[int]]:
+        """Way id → the ways continuing it through a vertex of degree 2 (where OSM merely splits
+        one road into two ways; junctions are the vertices of degree 3 or more)."""
+        if "_continuations" not in self.__dict__:
+            at: dict[int, set[int]] = {}
+            for e in range(len(self.edge_u)):
+                w = int(self.way_ids[self.edge_way_index[e]])
+                for v in (int(self.edge_u[e]), int(self.edge_v[e])):
+                    if self.vertex_degree[v] == 2:
+                        at.setdefault(v, set()).add(w)
+            cont: dict[int, set[int]] = {}
+            for ways in at.values():
+                for w in ways:
+                    cont.setdefault(w, set()).update(ways - {w})
+            self._continuations = cont
+        return self._continuations
+
     def query_radius(self, x_m: float, y_m: float, radius_m: float) -> np.ndarray:
         """Indices of way-points within ``radius_m`` of (x, y), unsorted."""
         return np.asarray(self.tree.query_ball_point((x_m, y_m), radius_m), dtype=np.intp)

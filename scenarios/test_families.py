@@ -70,8 +70,9 @@ def test_clear_never_worse_by_more_than_0_3_m(request):
     assert max(r["ate_mapfusion_m"] - r["ate_odometry_m"] for r in rows) <= 0.3
 
 
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-22: match rate 96.9% over the runs (Helsinki's parallel "
-                   "carriageways: 73% on one run); needs ≥ 97%")
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-22: match rate 96.9% over the runs; needs ≥ 97%. Most misses "
+                   "are one Helsinki run (73%) waiting at a light on a 3.5 m way that OSM split off Fabianinkatu, matched "
+                   "to the way continuing it; counting continuations (match_rate_road) gives 99.4%")
 def test_intersections_match_rate_at_least_97_percent(request):
     rows = _ok(request, "intersections")
     assert np.mean([r["match_rate"] for r in rows]) >= 0.97

@@ -98,7 +98,10 @@ def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None,
         matched = np.asarray(mf.engine.matched_way)
         true_way = drive.ego.osm_way[frames]
         sel = matched >= 0
+        # the contract's match rate (the very way SUMO drives on), and the same counting a way that
+        # merely continues it through a non-junction vertex (OSM splits roads anywhere) as a match
         metrics["match_rate"] = match_rate(true_way[sel], matched[sel]) if sel.any() else None
+        metrics["match_rate_road"] = match_rate(true_way[sel], matched[sel], road.continuations()) if sel.any() else None
         c = mf.engine.counters
         metrics.update({"map_priors": c.map_priors, "gps_used": c.gps_used,
                         "gps_rejected": c.gps_rejected_gate + c.gps_rejected_invalid,

@@ -141,3 +141,27 @@ def test_ate_equals_evo_on_a_simulated_run():
     gt = np.column_stack([drive.ego.x_m, drive.ego.y_m, drive.ego.z_m])[ib]
     assert len(ia) > 500
     assert ate(gt, est[ia]) == pytest.approx(_evo_ape(gt, est[ia]), abs=1e-6)
+
+
+def test_match_rate_counts_continuations_only_when_asked():
+    cont = {10: {11}, 11: {10}}
+    true = np.array([10, 10, 10, 12])
+    matched = np.array([10, 11, 13, 12])
+    assert match_rate(true, matched) == pytest.approx(0.5)
+    assert match_rate(true, matched, cont) == pytest.approx(0.75)  # 11 continues 10; 13 does not
+
+
+def test_continuations_are_splits_not_junctions(tmp_path):
+    from mapfusion import RoadMap, RoadMapConfig
+    from tests.helpers import write_osm
+
+    # one street split into two ways at x = 0, and a crossing street at x = 200 (a junction)
+    w1 = np.array([[-200.0, 0.0], [0.0, 0.0]])
+    w2 = np.array([[0.0, 0.0], [200.0, 0.0], [400.0, 0.0]])
+    w3 = np.array([[200.0, -200.0], [200.0, 0.0], [200.0, 200.0]])
+    path = write_osm(tmp_path, [(w1, {"highway": "residential"}), (w2, {"highway": "residential"}),
+                                (w3, {"highway": "residential"})])
+    road = RoadMap.from_osm(path, RoadMapConfig(), cache=False)
+    cont = road.continuations()
+    assert cont.get(1) == {2} and cont.get(2) == {1}
+    assert 3 not in cont.get(2, set())
