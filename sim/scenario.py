@@ -96,6 +96,19 @@ class GpsConfig:
 
 
 @dataclass(frozen=True)
+class ImuParams:
+    """``[imu]``: a consumer MEMS IMU (datasheet-class values of a smartphone / automotive-grade 6-axis part)."""
+
+    rate_hz: float = param(100.0, "Sample rate.", unit="Hz", min=1.0)
+    accel_noise_density: float = param(2.0e-3, "Accelerometer white noise density.", unit="m/s²/√Hz")
+    gyro_noise_density: float = param(2.0e-4, "Gyroscope white noise density (0.011 °/s/√Hz).", unit="rad/s/√Hz")
+    accel_bias_sigma: float = param(0.05, "σ of the initial accelerometer bias, per axis.", unit="m/s²")
+    gyro_bias_sigma: float = param(0.005, "σ of the initial gyroscope bias, per axis (0.3 °/s).", unit="rad/s")
+    accel_bias_rw: float = param(5.0e-4, "Accelerometer bias random walk.", unit="m/s³/√Hz")
+    gyro_bias_rw: float = param(2.0e-5, "Gyroscope bias random walk.", unit="rad/s²/√Hz")
+
+
+@dataclass(frozen=True)
 class TunnelZone:
     """``[[tunnels]]``: a GPS-denied, visually degraded zone by distance along the route."""
 
@@ -131,6 +144,7 @@ class Scenario:
     weather: WeatherConfig = param(WeatherConfig(), "[weather]")
     odometry: OdometryConfig = param(OdometryConfig(), "[odometry]")
     gps: GpsConfig = param(GpsConfig(), "[gps]")
+    imu: ImuParams = param(ImuParams(), "[imu]")
     tunnels: tuple[TunnelZone, ...] = param((), "[[tunnels]]")
     mapfusion: FusionConfig = param(FusionConfig(), "[mapfusion]")
 
@@ -152,7 +166,7 @@ class Scenario:
 
 
 _SECTIONS = {"traffic": TrafficConfig, "route": RouteConfig, "weather": WeatherConfig, "gps": GpsConfig,
-             "mapfusion": FusionConfig}
+             "imu": ImuParams, "mapfusion": FusionConfig}
 
 
 def scenario_from_dict(data: dict, where: str, base_dir: Path | None = None, resolve: bool = True) -> Scenario:

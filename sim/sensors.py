@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from mapfusion.config import param
 
-from .scenario import GpsConfig, GpsMode, OdometryKind, Scenario, WeatherKind
+from .scenario import GpsConfig, GpsMode, ImuParams, OdometryKind, Scenario, WeatherKind
 
 
 @dataclass(frozen=True)
@@ -81,20 +81,7 @@ def odometry_preset(kind: OdometryKind | str, weather: WeatherKind | str) -> Odo
     return dataclasses.replace(OdometryParams(), **changes)
 
 
-# ----------------------------------------------------------------------------- IMU parameters
-@dataclass(frozen=True)
-class ImuParams:
-    """Consumer MEMS IMU (datasheet-class values of a smartphone / automotive-grade 6-axis part)."""
-
-    rate_hz: float = param(100.0, "Sample rate.", unit="Hz", min=1.0)
-    accel_noise_density: float = param(2.0e-3, "Accelerometer white noise density.", unit="m/s²/√Hz")
-    gyro_noise_density: float = param(2.0e-4, "Gyroscope white noise density (0.011 °/s/√Hz).", unit="rad/s/√Hz")
-    accel_bias_sigma: float = param(0.05, "σ of the initial accelerometer bias, per axis.", unit="m/s²")
-    gyro_bias_sigma: float = param(0.005, "σ of the initial gyroscope bias, per axis (0.3 °/s).", unit="rad/s")
-    accel_bias_rw: float = param(5.0e-4, "Accelerometer bias random walk.", unit="m/s³/√Hz")
-    gyro_bias_rw: float = param(2.0e-5, "Gyroscope bias random walk.", unit="rad/s²/√Hz")
-
-
+# ----------------------------------------------------------------------------- IMU
 GRAVITY_MPS2 = 9.80665
 
 
@@ -400,6 +387,6 @@ def synthesise(sc: Scenario, truth: Truth) -> SensorData:
     params = odometry_preset(sc.odometry.kind, sc.weather.kind).with_overrides(sc.odometry.overrides)
     rng = sensor_streams(sc.seed)
     odo = simulate_odometry(truth, params, rng["odometry"], rain=WeatherKind(sc.weather.kind) is not WeatherKind.clear)
-    imu = simulate_imu(truth, ImuParams(), rng["imu"])
+    imu = simulate_imu(truth, sc.imu, rng["imu"])
     gps = simulate_gps(truth, sc.gps, rng["gps"])
     return SensorData(odo, imu, gps, params)

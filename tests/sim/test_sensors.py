@@ -239,3 +239,11 @@ def test_scenario_overrides_reach_the_model():
     sc = scenario_from_dict({"name": "o", "map": "grid", "odometry": {"kind": "vio", "rain_noise_factor": 7.0}}, "t")
     p = odometry_preset(sc.odometry.kind, sc.weather.kind).with_overrides(sc.odometry.overrides)
     assert p.rain_noise_factor == 7.0 and p.tunnel_lose_track == 0.0
+
+
+def test_imu_parameters_come_from_the_scenario():
+    sc = scenario_from_dict({"name": "i", "map": "grid", "imu": {"rate_hz": 200.0, "gyro_noise_density": 0.0}}, "t")
+    assert sc.imu.rate_hz == 200.0
+    truth = synthetic_truth("straight", n=100)
+    imu = simulate_imu(truth, sc.imu, np.random.default_rng(0))
+    assert np.allclose(np.diff(imu.t_s), 1 / 200.0)
