@@ -32,6 +32,8 @@ maps_app = typer.Typer(help="Road maps: build, inspect and generate.", no_args_i
 app.add_typer(maps_app, name="maps")
 scenarios_app = typer.Typer(help="Scenario families.", no_args_is_help=True)
 app.add_typer(scenarios_app, name="scenarios")
+import_app = typer.Typer(help="Recorded datasets in the project's formats.", no_args_is_help=True)
+app.add_typer(import_app, name="import")
 
 console = Console()
 err_console = Console(stderr=True)
@@ -223,6 +225,34 @@ def scenarios_generate(
     except InputError as exc:
         _fail(str(exc))
     console.print(f"wrote family {family} ({len(fam.scenarios)} runs) to {out}")
+
+
+@import_app.command("kitti")
+def import_kitti_cmd(
+    poses: Annotated[Path, typer.Option("--poses", help="KITTI poses.txt (12 numbers a line, camera 0).")],
+    times: Annotated[Path, typer.Option("--times", help="KITTI times.txt.")],
+    gps: Annotated[Path, typer.Option("--gps", help="RTK track as a KML LineString, one point per frame.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    map_path: Annotated[Optional[str], typer.Option("--map", help="OSM map defining the ENU frame "
+                                                    "(default: map.osm beside the poses).")] = None,
+) -> None:
+    """A KITTI sequence as a run directory: truth.tum in the map's ENU frame (georeferenced to the RTK
+    track with the antenna's lever arm), gps.csv from the track, import.json with the fit's residual."""
+    from .kitti import import_kitti, write_import
+    from .maps import resolve_map
+    from .roadmap import RoadMap
+
+    try:
+        mp = resolve_map(map_path) if map_path else resolve_map(poses.parent / "map.osm")
+        road = RoadMap.from_osm(mp)
+        imp = import_kitti(poses, times, gps, road.projection)
+        write_import(out, imp, road.projection, str(Path(mp).resolve()))
+    except InputError as exc:
+        _fail(str(exc))
+    g = imp.georef
+    console.print(f"{len(imp.t_s):,} frames → {out}; fit residual {g.residual_rmse_m:.3f} m RMSE "
+                  f"(max {g.residuals_m.max():.2f} m, {int(imp.filled.sum())} filled track points left out); lever arm (camera x right, y down, z forward) "
+                  f"{g.lever_arm_cam_m[0]:+.2f}, {g.lever_arm_cam_m[1]:+.2f}, {g.lever_arm_cam_m[2]:+.2f} m")
 
 
 @app.command()

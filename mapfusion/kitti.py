@@ -1,0 +1,187 @@
+"""KITTI odometry sequences in the project's formats (``mapfusion import kitti``).
+
+The camera-0 poses (KITTI ground truth, in camera 0's frame at frame 0) are georeferenced by
+fitting them to the RTK GPS track: p_gps,k = R · (t_k + R_k · ℓ) + t, with R, t the rigid motion
+into the map's ENU frame and ℓ the antenna's lever arm in the camera frame. The fit alternates a
+Umeyama alignment for R with a linear least-squares solve for t and ℓ; its residual is reported.
+The truth is the camera's pose in ENU with body axes (x forward, y left, z up). Track points the
+recording filled by interpolation (exactly straight, evenly spaced runs) are left out of the fit
+and of its residual.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .formats import FormatError, write_gps_csv, write_tum
+from .metrics import umeyama
+from .projection import LocalProjection
+from .runner import R_BODY_CAMERA
+
+
+def read_kml_track(path: str | Path) -> np.ndarray:
+    """The first LineString of a KML file as (N, 3) lon, lat, alt."""
+    p = Path(path)
+    if not p.exists():
+        raise FormatError(f"{p}: no such file")
+    text = p.read_text(encoding="utf-8", errors="replace")
+    m = re.search(r"<LineString\b.*?<coordinates>(.*?)</coordinates>", text, re.S)
+    if m is None:
+        raise FormatError(f"{p}: no LineString with coordinates in the KML")
+    start_line = text[: m.start(1)].count("\n") + 1
+    rows = []
+    for i, tok in enumerate(m.group(1).split()):
+        parts = tok.split(",")
+        try:
+            vals = [float(v) for v in parts]
+        except ValueError:
+            raise FormatError(f"{p}:{start_line}: coordinate {i + 1} is not lon,lat[,alt]: {tok[:40]!r}") from None
+        if len(vals) not in (2, 3) or not np.all(np.isfinite(vals)):
+            raise FormatError(f"{p}:{start_line}: coordinate {i + 1} is not lon,lat[,alt]: {tok[:40]!r}")
+        rows.append(vals if len(vals) == 3 else vals + [0.0])
+    if len(rows) < 3:
+        raise FormatError(f"{p}: the LineString has fewer than 3 points")
+    return np.asarray(rows)
+
+
+@dataclass(frozen=True)
+class Georeference:
+    """ENU ← camera-world rigid motion, the antenna lever arm, and the fit's residual."""
+
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+    lever_arm_cam_m: np.ndarray  # (3,) antenna in the camera frame (x right, y down, z forward)
+    residual_rmse_m: float
+    residual_rmse_xy_m: float
+    residuals_m: np.ndarray  # (N,) per frame
+    scale: float = 1.0  # KITTI's poses come from a Mercator projection exact at the start latitude only
+
+    def camera_to_enu(self, poses_cam: np.ndarray) -> np.ndarray:
+        """Camera poses (N, 4, 4) → poses in ENU with body axes (x forward, y left, z up)."""
+        out = np.tile(np.eye(4), (len(poses_cam), 1, 1))
+        out[:, :3, :3] = np.einsum("ij,njk,kl->nil", self.rotation, poses_cam[:, :3, :3], R_BODY_CAMERA.T)
+        out[:, :3, 3] = self.scale * poses_cam[:, :3, 3] @ self.rotation.T + self.translation
+        return out
+
+
+def filled_points(track_lonlatalt: np.ndarray, min_run: int = 3) -> np.ndarray:
+    """Points of the track inside runs that are exactly straight and evenly spaced: gaps the
+    recording filled by interpolation (shared/data/README.md), not measurements."""
+    ll = track_lonlatalt[:, :2]
+    second = np.abs(ll[2:] - 2 * ll[1:-1] + ll[:-2]).max(axis=1)
+    flat = np.concatenate(([False], second < 1e-11, [False]))
+    out = np.zeros(len(ll), dtype=bool)
+    i = 0
+    while i < len(flat):
+        if flat[i]:
+            j = i
+            while j < len(flat) and flat[j]:
+                j += 1
+            if j - i >= min_run:
+                out[i - 1:j + 1] = True  # the run's ends are interpolated too
+            i = j
+        else:
+            i += 1
+    return out
+
+
+def georeference(poses_cam: np.ndarray, gps_enu: np.ndarray, iterations: int = 10,
+                 use: np.ndarray | None = None, fit_scale: bool = True) -> Georeference:
+    """Fit R, t and the lever arm ℓ so that R · (t_k + R_k ℓ) + t matches the GPS (both (N, ...)),
+    on the points in ``use`` (default all); residuals are reported over the same points."""
+    n = len(poses_cam)
+    if len(gps_enu) != n:
+        raise ValueError("georeference: one GPS position per pose")
+    use = np.ones(n, dtype=bool) if use is None else np.asarray(use, dtype=bool)
+    poses_cam, gps_enu, n = poses_cam[use], gps_enu[use], int(use.sum())
+    t_cam = poses_cam[:, :3, 3]
+    r_cam = poses_cam[:, :3, :3]
+    lever = np.zeros(3)
+    trans = np.zeros(3)
+    rot = np.eye(3)
+    scale = 1.0
+    for _ in range(iterations):
+        src = t_cam + np.einsum("nij,j->ni", r_cam, lever)
+        rot, _, scale = umeyama(src, gps_enu, with_scale=fit_scale)
+        # G_k − s R t_k = t + s R R_k ℓ: linear in (t, ℓ)
+        a = np.zeros((3 * n, 6))
+        a[:, :3] = np.tile(np.eye(3), (n, 1))
+        a[:, 3:] = scale * np.einsum("ij,njk->nik", rot, r_cam).reshape(3 * n, 3)
+        b = (gps_enu - scale * t_cam @ rot.T).reshape(3 * n)
+        sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+        trans, lever = sol[:3], sol[3:]
+    pred = scale * (t_cam + np.einsum("nij,j->ni", r_cam, lever)) @ rot.T + trans
+    res = gps_enu - pred
+    per = np.linalg.norm(res, axis=1)
+    return Georeference(rot, trans, lever, float(np.sqrt(np.mean(per**2))),
+                        float(np.sqrt(np.mean(np.sum(res[:, :2] ** 2, axis=1)))), per, float(scale))
+
+
+@dataclass(frozen=True)
+class KittiImport:
+    t_s: np.ndarray
+    truth_enu: np.ndarray  # (N, 4, 4) body axes
+    georef: Georeference
+    track_lonlatalt: np.ndarray
+    origin_alt_m: float
+    filled: np.ndarray  # track points the recording filled (left out of the fit)
+
+
+def import_kitti(poses_path: str | Path, times_path: str | Path, kml_path: str | Path,
+                 projection: LocalProjection) -> KittiImport:
+    """Read a KITTI sequence and georeference it into ``projection``'s ENU frame."""
+    from .formats import read_kitti_poses, read_times
+
+    poses = read_kitti_poses(poses_path)
+    t = read_times(times_path)
+    if len(t) != len(poses):
+        raise FormatError(f"{poses_path}: {len(poses)} poses but {times_path} has {len(t)} times "
+                          f"(line {min(len(t), len(poses)) + 1} of the longer file has no partner)")
+    track = read_kml_track(kml_path)
+    if len(track) < len(poses):
+        raise FormatError(f"{kml_path}: {len(track)} track points for {len(poses)} poses")
+    track = track[: len(poses)]  # point k is raw frame k (shared/data/README.md)
+    x, y = projection.to_enu(track[:, 1], track[:, 0])
+    alt0 = float(track[0, 2])
+    gps = np.column_stack([x, y, track[:, 2] - alt0])
+    filled = filled_points(track)
+    geo = georeference(poses, gps, use=~filled)
+    return KittiImport(t, geo.camera_to_enu(poses), geo, track, alt0, filled)
+
+
+def write_import(out: str | Path, imp: KittiImport, projection: LocalProjection, map_path: str,
+                 gps_sigma_m: float = 0.05) -> Path:
+    """``truth.tum``, ``truth.csv``, ``gps.csv`` (the RTK track) and ``import.json`` (the fit)."""
+    from scipy.spatial.transform import Rotation
+
+    d = Path(out)
+    d.mkdir(parents=True, exist_ok=True)
+    xyz = imp.truth_enu[:, :3, 3]
+    q = Rotation.from_matrix(imp.truth_enu[:, :3, :3]).as_quat()
+    write_tum(d / "truth.tum", imp.t_s, xyz, q, header="KITTI ground truth, camera 0 with body axes, map ENU frame")
+    yaw = Rotation.from_matrix(imp.truth_enu[:, :3, :3]).as_euler("ZYX")[:, 0]
+    step = np.hypot(*np.diff(xyz[:, :2], axis=0).T)
+    speed = np.gradient(np.concatenate(([0.0], np.cumsum(step))), imp.t_s)
+    lat, lon = projection.to_geo(xyz[:, 0], xyz[:, 1])
+    with open(d / "truth.csv", "w") as f:
+        f.write("t,x,y,z,yaw,speed,lat,lon,sumo_edge,osm_way,in_tunnel,sumo_lane,distance_m,sumo_speed\n")
+        dist = np.concatenate(([0.0], np.cumsum(step)))
+        for i in range(len(imp.t_s)):
+            f.write(f"{imp.t_s[i]:.6f},{xyz[i, 0]:.4f},{xyz[i, 1]:.4f},{xyz[i, 2]:.4f},{yaw[i]:.6f},{speed[i]:.4f},"
+                    f"{lat[i]:.9f},{lon[i]:.9f},,,0,,{dist[i]:.3f},\n")
+    tr = imp.track_lonlatalt
+    write_gps_csv(d / "gps.csv", imp.t_s, tr[:, 1], tr[:, 0], tr[:, 2], np.full(len(tr), gps_sigma_m))
+    g = imp.georef
+    info = {"map": map_path, "frames": int(len(imp.t_s)), "residual_rmse_m": g.residual_rmse_m,
+            "residual_rmse_xy_m": g.residual_rmse_xy_m, "residual_max_m": float(g.residuals_m.max()),
+            "lever_arm_cam_m": g.lever_arm_cam_m.tolist(), "rotation": g.rotation.tolist(),
+            "translation_m": g.translation.tolist(), "origin_alt_m": imp.origin_alt_m,
+            "filled_track_points": int(imp.filled.sum()),
+            "note": "gps.csv is the RTK track at the antenna; truth is camera 0 (lever arm above)"}
+    (d / "import.json").write_text(json.dumps(info, indent=2) + "\n")
+    return d

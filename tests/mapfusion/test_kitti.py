@@ -1,0 +1,103 @@
+"""KITTI import: georeferencing the real drives to their RTK tracks, and bad input."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from mapfusion.cli import app
+from mapfusion.formats import FormatError
+from mapfusion.kitti import filled_points, georeference, read_kml_track
+
+runner = CliRunner()
+DATA = os.environ.get("MAPFUSION_DATA")
+SEQUENCES = ("00", "01", "02", "05", "07")
+needs_data = pytest.mark.skipif(not DATA or not (Path(DATA) / "kitti").is_dir(),
+                                reason="MAPFUSION_DATA is not set (.ci/run points it at ../shared/data)")
+
+
+@needs_data
+@pytest.mark.parametrize("seq", SEQUENCES)
+def test_georeferencing_residual_under_half_a_metre(seq, tmp_path):
+    d = Path(DATA) / "kitti" / seq
+    r = runner.invoke(app, ["import", "kitti", "--poses", str(d / "poses.txt"), "--times", str(d / "times.txt"),
+                            "--gps", str(d / "rtk_gps.kml"), "--out", str(tmp_path / seq)])
+    assert r.exit_code == 0, r.output
+    import json
+
+    info = json.loads((tmp_path / seq / "import.json").read_text())
+    assert info["residual_rmse_m"] < 0.5, info["residual_rmse_m"]
+    # the lever arm: about 1.1 m behind and 0.3 m left of camera 0 (shared/data/README.md)
+    lx, _, lz = info["lever_arm_cam_m"]
+    assert -0.6 < lx < -0.1 and -1.5 < lz < -0.8
+    assert abs(info["frames"] - len((d / "times.txt").read_text().split())) == 0
+    for f in ("truth.tum", "truth.csv", "gps.csv"):
+        assert (tmp_path / seq / f).stat().st_size > 0
+
+
+def test_georeference_recovers_a_known_motion_and_lever_arm():
+    rng = np.random.default_rng(0)
+    from scipy.spatial.transform import Rotation
+
+    n = 300
+    rot_k = Rotation.from_euler("y", np.cumsum(rng.normal(0, 0.02, n))[:, None]).as_matrix()  # turning about the camera y (down)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, :3] = rot_k
+    poses[:, :3, 3] = np.cumsum(rng.normal(0, 1, (n, 3)) * (1, 0.05, 1) + (0, 0, 5), axis=0)
+    true_r = Rotation.from_euler("zyx", [0.7, 0.01, -0.02]).as_matrix()
+    true_t = np.array([100.0, -50.0, 3.0])
+    lever = np.array([-0.3, -1.5, -1.1])
+    gps = (poses[:, :3, 3] + np.einsum("nij,j->ni", poses[:, :3, :3], lever)) @ true_r.T * 1.0005 + true_t
+    g = georeference(poses, gps)
+    assert g.residual_rmse_m < 1e-6
+    assert np.allclose(g.rotation, true_r, atol=1e-6)
+    # a car turns about the camera's vertical (y) axis only, so the lever arm's vertical part trades
+    # against the translation and cannot be observed; the horizontal parts can
+    assert np.allclose(g.lever_arm_cam_m[[0, 2]], lever[[0, 2]], atol=1e-4)
+    assert g.scale == pytest.approx(1.0005, abs=1e-9)
+
+
+def test_filled_runs_are_found():
+    lon = np.concatenate([8.0 + np.cumsum(np.random.default_rng(1).normal(1e-5, 2e-6, 20)), 8.01 + np.arange(10) * 1e-5])
+    lat = np.concatenate([49.0 + np.cumsum(np.random.default_rng(2).normal(1e-5, 2e-6, 20)), 49.01 + np.arange(10) * 2e-5])
+    f = filled_points(np.column_stack([lon, lat, np.zeros(30)]))
+    assert not f[:19].any() and f[21:].all()
+
+
+def _seq(tmp_path, poses_lines, times_lines, kml):
+    (tmp_path / "poses.txt").write_text("\n".join(poses_lines) + "\n")
+    (tmp_path / "times.txt").write_text("\n".join(times_lines) + "\n")
+    (tmp_path / "gps.kml").write_text(kml)
+    (tmp_path / "map.osm").write_text((Path(__file__).parents[2] / "maps" / "synthetic" / "grid.osm").read_text())
+    return ["import", "kitti", "--poses", str(tmp_path / "poses.txt"), "--times", str(tmp_path / "times.txt"),
+            "--gps", str(tmp_path / "gps.kml"), "--out", str(tmp_path / "out")]
+
+
+POSE = "1 0 0 {x} 0 1 0 0 0 0 1 {z}"
+KML = ('<kml><Document><Placemark><LineString><coordinates>'
+       + " ".join(f"24.9{i:02d},60.2{i:02d},10" for i in range(5)) + '</coordinates></LineString></Placemark></Document></kml>')
+
+
+@pytest.mark.parametrize(
+    "poses,times,kml,needle",
+    [
+        ([POSE.format(x=i, z=i) for i in range(5)], ["0.0", "0.1", "0.2", "0.3"], KML, "5 poses but"),
+        ([POSE.format(x=i, z=i) for i in range(5)], [f"{0.1 * i:.1f}" for i in range(5)], "<kml><Document/></kml>", "no LineString"),
+        ([POSE.format(x=i, z=i) for i in range(4)] + ["1 0 0 1 0 1 0 0 0 0 1"], [f"{0.1 * i:.1f}" for i in range(5)], KML, "poses.txt:5"),
+    ],
+)
+def test_bad_input_exits_2_naming_file_and_line(tmp_path, poses, times, kml, needle):
+    r = runner.invoke(app, _seq(tmp_path, poses, times, kml))
+    assert r.exit_code == 2
+    assert needle in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_kml_reader_errors(tmp_path):
+    p = tmp_path / "t.kml"
+    p.write_text("<kml><LineString><coordinates>1,2,3 x,y</coordinates></LineString></kml>")
+    with pytest.raises(FormatError, match="t.kml:1"):
+        read_kml_track(p)
