@@ -142,6 +142,7 @@ class MapFusion:
         self.counters = Counters()
         self._scale_est = ScaleEstimator(self.cfg, gps_rate_hz, odometry_rate_hz)
         self._nominal_period = 1.0 / odometry_rate_hz
+        self._level: gtsam.Pose3 | None = None  # rotation levelling the odometry frame (planar state)
         self._rejected_run: list[tuple[float, float, float, int]] = []  # consecutive gated fixes (t, x, y, frame)
         self.scale: float | None = None
         self.scale_sigma: float | None = None
@@ -190,7 +191,7 @@ class MapFusion:
         first = not self._t
         self._odo_abs = self._odo_abs if first else self._odo_abs.compose(rel)
         self._t.append(t)
-        self._raw.append(self._odo_abs)
+        self._raw.append(self._level.compose(self._odo_abs) if self._level is not None else self._odo_abs)
         self._rel.append(gtsam.Pose3() if first else rel)
         self.counters.frames += 1
         self._scale_est.add_odometry(t, self._odo_abs.translation())
@@ -260,6 +261,8 @@ class MapFusion:
         stalled = (self._t[-1] - self._gps_pre[-1][0] > 5.0) and est.samples >= 5
         if not (enough or stalled):
             return
+        if self.cfg.state is StateModel.planar and self._level is None:
+            self._level_odometry_frame()  # with every frame of the initialisation window
         g = np.array([(t, x, y) for t, x, y, _ in self._gps_pre])
         g = g[g[:, 0] <= self._t[-1] + 1e-9]
         g = g[g[:, 0] >= self._t[0] - 1e-9]
@@ -317,6 +320,29 @@ class MapFusion:
             return
         log.info("scale refined by the initialisation fit: %.4f → %.4f (± %.4f)", self.scale, fit[0], fit[1])
         self.scale, self.scale_sigma, self._rot, self._trans = fit
+
+    def _level_odometry_frame(self) -> None:
+        """A VO's frame is its first camera frame, often pitched a degree or two: projecting its
+        motion on that frame's "horizontal" shortens distances by 1 − cos(tilt), which the scale
+        then absorbs wrongly. Roads are level on average, so the mean of the body's up axis over the
+        frames so far is up: rotate the frame so it is."""
+        ups = np.array([p.rotation().matrix()[:, 2] for p in self._raw])
+        up = ups.mean(axis=0)
+        norm = np.linalg.norm(up)
+        if norm < 0.5:
+            return
+        up /= norm
+        axis = np.cross(up, [0.0, 0.0, 1.0])
+        angle = math.asin(min(1.0, float(np.linalg.norm(axis))))
+        if angle < 1e-6:
+            self._level = gtsam.Pose3()
+            return
+        lvl = gtsam.Pose3(gtsam.Rot3.Rodrigues(axis / np.linalg.norm(axis) * angle), gtsam.Point3(0, 0, 0))
+        self._level = lvl
+        self._raw = [lvl.compose(p) for p in self._raw]
+        for i in range(len(self._raw)):
+            self._scale_est._odo_p[i] = self._raw[i].translation()
+        log.info("odometry frame levelled by %.2f°", math.degrees(angle))
 
     def _refine_with_fix(self, t: float, x: float, y: float, sigma: float) -> None:
         """While fixes keep coming after initialisation, refit the scale on the fixes of the last

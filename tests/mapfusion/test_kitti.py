@@ -101,3 +101,32 @@ def test_kml_reader_errors(tmp_path):
     p.write_text("<kml><LineString><coordinates>1,2,3 x,y</coordinates></LineString></kml>")
     with pytest.raises(FormatError, match="t.kml:1"):
         read_kml_track(p)
+
+
+@needs_data
+@pytest.mark.parametrize("seq", ["00", "05"])
+def test_noise_free_odometry_reproduces_the_truth(seq):
+    """The KITTI poses themselves as odometry, GPS at the truth for the first 120 s (1 Hz): the
+    engine must put the whole drive back within 0.1 m (ATE) of the georeferenced truth."""
+    from mapfusion import RoadMap
+    from mapfusion.config import FusionConfig
+    from mapfusion.formats import GpsFixes, read_kitti_poses, read_times
+    from mapfusion.kitti import import_kitti
+    from mapfusion.metrics import ate
+    from mapfusion.runner import camera_to_body, fuse
+
+    d = Path(DATA) / "kitti" / seq
+    road = RoadMap.from_osm(d / "map.osm")
+    imp = import_kitti(d / "poses.txt", d / "times.txt", d / "rtk_gps.kml", road.projection)
+    t = read_times(d / "times.txt")
+    truth = imp.truth_enu[:, :3, 3]
+    sel = np.arange(0, len(t), 10)
+    sel = sel[t[sel] <= 120.0]
+    lat, lon = road.projection.to_geo(truth[sel, 0], truth[sel, 1])
+    fixes = GpsFixes(t[sel], np.asarray(lat), np.asarray(lon), np.full(len(sel), np.nan), np.full(len(sel), 0.05))
+    cfg = FusionConfig(use_map=False, odometry_sigma_after_init_m=1e-4, odometry_sigma_before_init_m=1e-3,
+                       odometry_rot_sigma_deg=1e-4, odometry_priors=False)
+    res = fuse(road, t, camera_to_body(read_kitti_poses(d / "poses.txt")), fixes, cfg)
+    ok = [i for i, p in enumerate(res.online) if p is not None]
+    est = np.array([[res.online[i].x(), res.online[i].y(), res.online[i].z()] for i in ok])
+    assert ate(truth[ok], est) < 0.1
