@@ -259,9 +259,13 @@ def import_kitti_cmd(
 def simulate(
     scenario: Annotated[Path, typer.Argument(help="Scenario TOML file (DESIGN 'Scenario files').")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    truth: Annotated[Optional[Path], typer.Option("--truth", help="A recorded truth (TUM, in the scenario map's ENU "
+                                                  "frame, e.g. RUN/truth.tum of mapfusion import kitti): the sensors "
+                                                  "are synthesised on it instead of a SUMO drive.")] = None,
 ) -> None:
-    """Drive the scenario in SUMO, synthesise the sensors and write the run directory: scenario.toml
-    (resolved), truth.tum, truth.csv, odometry.tum, gps.csv, imu.csv (and fleet.csv in fleet mode)."""
+    """Drive the scenario in SUMO (or take a recorded --truth), synthesise the sensors and write the run
+    directory: scenario.toml (resolved), truth.tum, truth.csv, odometry.tum, gps.csv, imu.csv (and fleet.csv
+    in fleet mode)."""
     # The engine never needs SUMO: the simulation is imported only by the commands that drive it.
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -273,6 +277,23 @@ def simulate(
 
     from .roadmap import RoadMap
 
+    if truth is not None:
+        from sim.rundir import write_recorded_truth, write_sensors as _write_sensors
+        from sim.sensors import synthesise as _synthesise, truth_from_tum
+
+        try:
+            sc = load_scenario(scenario)
+            road = RoadMap.from_osm(sc.map)
+            rec = truth_from_tum(truth, sc, road)
+            sensors = _synthesise(sc, rec)
+            xyz = np.column_stack([rec.x_m, rec.y_m, rec.z_m])
+            write_recorded_truth(out, sc, rec.t_s, xyz, rec.yaw_rad, rec.visually_degraded, road.projection)
+            _write_sensors(out, sensors, road.projection)
+        except InputError as exc:
+            _fail(str(exc))
+        console.print(f"{sc.name}: sensors on the recorded truth {truth} ({len(rec):,} frames): "
+                      f"{len(sensors.odometry.t_s):,} odometry frames, {len(sensors.gps.t_s)} GPS fixes → {out}")
+        return
     try:
         sc = load_scenario(scenario)
         with err_console.status("building road map and SUMO network ..."):

@@ -79,3 +79,25 @@ def write_sensors(run_dir: str | Path, sensors: SensorData, projection) -> Path:
     }
     (d / "sensor_events.json").write_text(json.dumps(events, indent=2) + "\n")
     return d
+
+
+def write_recorded_truth(run_dir: str | Path, sc: Scenario, t_s, xyz, yaw, in_zone, projection) -> Path:
+    """``scenario.toml``, ``truth.tum`` and a ``truth.csv`` (no SUMO columns) for a recorded truth."""
+    import numpy as np
+
+    d = Path(run_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "scenario.toml").write_text(sc.to_toml())
+    write_tum(d / "truth.tum", t_s, xyz, yaw_to_quaternion(yaw), header=f"recorded ground truth of {sc.name}, map ENU frame")
+    step = np.hypot(*np.diff(xyz[:, :2], axis=0).T)
+    dist = np.concatenate(([0.0], np.cumsum(step)))
+    speed = np.gradient(dist, t_s) if len(t_s) > 1 else np.zeros(len(t_s))
+    lat, lon = projection.to_geo(xyz[:, 0], xyz[:, 1])
+    with open(d / "truth.csv", "w", newline="") as f:
+        w = csv.writer(f, lineterminator="\n")
+        w.writerow(TRUTH_COLUMNS)
+        for i in range(len(t_s)):
+            w.writerow([f"{t_s[i]:.6f}", f"{xyz[i, 0]:.4f}", f"{xyz[i, 1]:.4f}", f"{xyz[i, 2]:.4f}", f"{yaw[i]:.6f}",
+                        f"{speed[i]:.4f}", f"{lat[i]:.9f}", f"{lon[i]:.9f}", "", "", "1" if in_zone[i] else "0", "",
+                        f"{dist[i]:.3f}", ""])
+    return d

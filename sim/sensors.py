@@ -112,6 +112,41 @@ class Truth:
                    np.asarray(track.z_m, float), np.asarray(track.yaw_rad, float), denied, tunnel)
 
 
+def truth_from_tum(path, sc, road) -> Truth:
+    """A recorded truth (TUM, in the scenario map's ENU frame) for the sensor models.
+
+    GPS-denied, visually degraded stretches are the scenario's ``[[tunnels]]`` zones by distance
+    along the path, plus frames under a bridge of the map (no road is known to be a tunnel: a
+    recorded drive has no SUMO edge). Raises InputError when the truth lies off the map.
+    """
+    from mapfusion.errors import InputError
+    from mapfusion.formats import quaternion_to_yaw, read_tum
+
+    from pathlib import Path as _Path
+
+    info = _Path(path).parent / "import.json"
+    if info.exists():  # mapfusion import kitti records the map whose frame the truth is in
+        import json
+
+        recorded = json.loads(info.read_text()).get("map")
+        if recorded and _Path(recorded).resolve() != _Path(sc.map).resolve():
+            raise InputError(f"{path}: this truth is in the ENU frame of {recorded}, not of the scenario's map {sc.map}")
+    t, xyz, q = read_tum(path)
+    lo, hi = road.xy_m.min(0) - 500.0, road.xy_m.max(0) + 500.0
+    inside = np.all((xyz[:, :2] >= lo) & (xyz[:, :2] <= hi), axis=1)
+    if inside.mean() < 0.5:
+        raise InputError(f"{path}: the truth lies off the map {sc.map} (is it in that map's ENU frame, "
+                         "as mapfusion import kitti writes it for the same map?)")
+    yaw = quaternion_to_yaw(q)
+    dist = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xyz[:, :2], axis=0).T))))
+    zone = np.zeros(len(t), dtype=bool)
+    for z in sc.tunnels:
+        zone |= (dist >= z.start_m) & (dist <= z.end_m)
+    bridge = under_bridges(road, xyz[:, 0], xyz[:, 1], np.full(len(t), -1))
+    denied = (zone if sc.gps.deny_in_tunnels else np.zeros_like(zone)) | (bridge if sc.gps.deny_under_bridges else False)
+    return Truth(t, xyz[:, 0].copy(), xyz[:, 1].copy(), xyz[:, 2].copy(), yaw, denied, zone)
+
+
 def under_bridges(road, x_m: np.ndarray, y_m: np.ndarray, osm_way: np.ndarray) -> np.ndarray:
     """Frames under a bridge: a bridge way of a higher layer passes within half its width + 1 m.
 

@@ -130,3 +130,31 @@ def test_noise_free_odometry_reproduces_the_truth(seq):
     ok = [i for i, p in enumerate(res.online) if p is not None]
     est = np.array([[res.online[i].x(), res.online[i].y(), res.online[i].z()] for i in ok])
     assert ate(truth[ok], est) < 0.1
+
+
+@needs_data
+def test_simulate_on_a_recorded_truth(tmp_path):
+    """Sensors synthesised on the real KITTI 07 drive, then fused: the drive is not lost."""
+    import json
+
+    d = Path(DATA) / "kitti" / "07"
+    run = tmp_path / "k07"
+    assert runner.invoke(app, ["import", "kitti", "--poses", str(d / "poses.txt"), "--times", str(d / "times.txt"),
+                               "--gps", str(d / "rtk_gps.kml"), "--out", str(run)]).exit_code == 0
+    sc = tmp_path / "s.toml"
+    sc.write_text(f'name = "k07"\nmap = "{d / "map.osm"}"\nseed = 1\n[weather]\nkind = "rain"\n')
+    sim = tmp_path / "sim"
+    r = runner.invoke(app, ["simulate", str(sc), "--truth", str(run / "truth.tum"), "--out", str(sim)])
+    assert r.exit_code == 0, r.output
+    for f in ("scenario.toml", "truth.tum", "truth.csv", "odometry.tum", "gps.csv", "imu.csv"):
+        assert (sim / f).stat().st_size > 0
+    r = runner.invoke(app, ["fuse", "--map", str(d / "map.osm"), "--odometry", str(sim / "odometry.tum"),
+                            "--gps", str(sim / "gps.csv"), "--out", str(sim / "est.tum")])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["evaluate", "--truth", str(sim / "truth.tum"), "--estimate", str(sim / "est.tum"), "--json"])
+    assert json.loads(r.stdout)["ate_m"] < 20.0
+    # a truth in another map's frame is refused
+    other = Path(DATA) / "kitti" / "00"
+    sc.write_text(f'name = "k07"\nmap = "{other / "map.osm"}"\nseed = 1\n')
+    r = runner.invoke(app, ["simulate", str(sc), "--truth", str(run / "truth.tum"), "--out", str(tmp_path / "x")])
+    assert r.exit_code == 2 and "ENU frame of" in r.stderr
