@@ -235,6 +235,8 @@ def import_kitti_cmd(
     out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
     map_path: Annotated[Optional[str], typer.Option("--map", help="OSM map defining the ENU frame "
                                                     "(default: map.osm beside the poses).")] = None,
+    gps_at: Annotated[str, typer.Option("--gps-at", help="camera: the fixes moved to camera 0 by the fitted lever arm "
+                                        "(what a camera odometry is compared with); antenna: the raw track.")] = "camera",
 ) -> None:
     """A KITTI sequence as a run directory: truth.tum in the map's ENU frame (georeferenced to the RTK
     track with the antenna's lever arm), gps.csv from the track, import.json with the fit's residual."""
@@ -245,8 +247,10 @@ def import_kitti_cmd(
     try:
         mp = resolve_map(map_path) if map_path else resolve_map(poses.parent / "map.osm")
         road = RoadMap.from_osm(mp)
+        if gps_at not in ("camera", "antenna"):
+            raise InputError(f"--gps-at is camera or antenna, got {gps_at!r}")
         imp = import_kitti(poses, times, gps, road.projection)
-        write_import(out, imp, road.projection, str(Path(mp).resolve()))
+        write_import(out, imp, road.projection, str(Path(mp).resolve()), gps_at_camera=gps_at == "camera")
     except InputError as exc:
         _fail(str(exc))
     g = imp.georef
@@ -335,6 +339,9 @@ def fuse(
     odometry_frame: Annotated[str, typer.Option("--odometry-frame", help="body (x fwd, y left, z up) | camera (x right, y down, z fwd)")] = "body",
     no_map: Annotated[bool, typer.Option("--no-map", help="The baseline: same GPS use, no map priors.")] = False,
     smoothed: Annotated[Optional[Path], typer.Option("--smoothed", help="Also write the smoothed trajectory (TUM).")] = None,
+    gps_until_s: Annotated[Optional[float], typer.Option("--gps-until-s", help="Use GPS fixes only this many seconds "
+                                                         "from the first odometry frame (the paper's KITTI protocol: "
+                                                         "GPS for initialisation only).", min=0.0)] = None,
 ) -> None:
     """Run the engine on recorded odometry and GPS with an OSM map; write the online (causal) estimate."""
     from .formats import FormatError, read_gps_csv, read_imu_csv, write_tum
@@ -351,6 +358,11 @@ def fuse(
         cfg = load_fusion_config(config, **({"use_map": False} if no_map else {}))
         t_odo, poses = read_odometry(odometry, fmt, times, frame)
         fixes = read_gps_csv(gps) if gps is not None else None
+        if fixes is not None and gps_until_s is not None:
+            from .formats import GpsFixes
+
+            keep = fixes.t_s <= t_odo[0] + gps_until_s
+            fixes = GpsFixes(fixes.t_s[keep], fixes.lat_deg[keep], fixes.lon_deg[keep], fixes.alt_m[keep], fixes.sigma_m[keep])
         if imu is not None:
             read_imu_csv(imu)
         with err_console.status("building road map ..."):

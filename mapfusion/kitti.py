@@ -155,8 +155,9 @@ def import_kitti(poses_path: str | Path, times_path: str | Path, kml_path: str |
 
 
 def write_import(out: str | Path, imp: KittiImport, projection: LocalProjection, map_path: str,
-                 gps_sigma_m: float = 0.05) -> Path:
-    """``truth.tum``, ``truth.csv``, ``gps.csv`` (the RTK track) and ``import.json`` (the fit)."""
+                 gps_sigma_m: float = 0.05, gps_at_camera: bool = True) -> Path:
+    """``truth.tum``, ``truth.csv``, ``gps.csv`` (the RTK track, moved from the antenna to camera 0 by
+    the fitted lever arm unless ``gps_at_camera`` is false) and ``import.json`` (the fit)."""
     from scipy.spatial.transform import Rotation
 
     d = Path(out)
@@ -174,7 +175,15 @@ def write_import(out: str | Path, imp: KittiImport, projection: LocalProjection,
         for i in range(len(imp.t_s)):
             f.write(f"{imp.t_s[i]:.6f},{xyz[i, 0]:.4f},{xyz[i, 1]:.4f},{xyz[i, 2]:.4f},{yaw[i]:.6f},{speed[i]:.4f},"
                     f"{lat[i]:.9f},{lon[i]:.9f},,,0,,{dist[i]:.3f},\n")
-    tr = imp.track_lonlatalt
+    tr = imp.track_lonlatalt.copy()
+    if gps_at_camera:
+        # the antenna sits at the lever arm from camera 0: move every fix by it, in ENU
+        g = imp.georef
+        r_cam = np.einsum("ij,njk,kl->nil", g.rotation.T, imp.truth_enu[:, :3, :3], R_BODY_CAMERA)  # camera rotations
+        offset = g.scale * np.einsum("ij,njk,k->ni", g.rotation, r_cam, g.lever_arm_cam_m)
+        ax, ay = projection.to_enu(tr[:, 1], tr[:, 0])
+        lat_c, lon_c = projection.to_geo(np.asarray(ax) - offset[:, 0], np.asarray(ay) - offset[:, 1])
+        tr[:, 1], tr[:, 0], tr[:, 2] = lat_c, lon_c, tr[:, 2] - offset[:, 2]
     write_gps_csv(d / "gps.csv", imp.t_s, tr[:, 1], tr[:, 0], tr[:, 2], np.full(len(tr), gps_sigma_m))
     g = imp.georef
     info = {"map": map_path, "frames": int(len(imp.t_s)), "residual_rmse_m": g.residual_rmse_m,
@@ -182,6 +191,8 @@ def write_import(out: str | Path, imp: KittiImport, projection: LocalProjection,
             "lever_arm_cam_m": g.lever_arm_cam_m.tolist(), "rotation": g.rotation.tolist(),
             "translation_m": g.translation.tolist(), "origin_alt_m": imp.origin_alt_m,
             "filled_track_points": int(imp.filled.sum()),
-            "note": "gps.csv is the RTK track at the antenna; truth is camera 0 (lever arm above)"}
+            "gps_at": "camera" if gps_at_camera else "antenna",
+            "note": "truth is camera 0 with body axes; gps.csv is the RTK track, at camera 0 (moved by the lever arm) "
+                    "or at the antenna as gps_at says"}
     (d / "import.json").write_text(json.dumps(info, indent=2) + "\n")
     return d
