@@ -281,25 +281,35 @@ def simulate(
 
     from .roadmap import RoadMap
 
-    if truth is not None:
-        from sim.rundir import write_recorded_truth, write_sensors as _write_sensors
-        from sim.sensors import synthesise as _synthesise, truth_from_tum
+    try:
+        sc = load_scenario(scenario)
+    except InputError as exc:
+        _fail(str(exc))
+    if truth is not None or sc.truth:
+        from sim.recorded import load_recorded, recorded_gps
+        from sim.rundir import write_recorded_truth
+        from sim.scenario import GpsSource
 
+        src = truth if truth is not None else Path(sc.truth)
         try:
-            sc = load_scenario(scenario)
+            if truth is not None:
+                if not truth.exists():
+                    raise InputError(f"{truth}: no such file or directory")
+                sc = sc.replace(truth=str(truth.resolve()))
             road = RoadMap.from_osm(sc.map)
-            rec = truth_from_tum(truth, sc, road)
-            sensors = _synthesise(sc, rec)
-            xyz = np.column_stack([rec.x_m, rec.y_m, rec.z_m])
-            write_recorded_truth(out, sc, rec.t_s, xyz, rec.yaw_rad, rec.visually_degraded, road.projection)
-            _write_sensors(out, sensors, road.projection)
+            rec = load_recorded(src, sc, road)
+            gps = recorded_gps(rec, sc.gps) if sc.gps.source is GpsSource.recorded else None
+            sensors = synthesise(sc, rec.truth, gps)
+            t = rec.truth
+            write_recorded_truth(out, sc, t.t_s, np.column_stack([t.x_m, t.y_m, t.z_m]), t.yaw_rad,
+                                 t.visually_degraded, road.projection)
+            write_sensors(out, sensors, road.projection)
         except InputError as exc:
             _fail(str(exc))
-        console.print(f"{sc.name}: sensors on the recorded truth {truth} ({len(rec):,} frames): "
+        console.print(f"{sc.name}: sensors on the recorded truth {src} ({len(rec.truth):,} frames): "
                       f"{len(sensors.odometry.t_s):,} odometry frames, {len(sensors.gps.t_s)} GPS fixes → {out}")
         return
     try:
-        sc = load_scenario(scenario)
         with err_console.status("building road map and SUMO network ..."):
             road = RoadMap.from_osm(sc.map)
             net = build_network(sc.map)
@@ -471,6 +481,46 @@ def _paper_table(rows: list[dict], title: str, strip_prefix: str = "") -> Table:
     return t
 
 
+def _table_one(rows: list[dict], title: str) -> Table:
+    """The paper's Table I layout for recorded drives: sequences as columns, for each odometry kind ×
+    weather the rows odometry / + Map-Fusion / reduction (ATE, m). A cell over several seeds is their
+    mean; x = every seed de-localised; Avg leaves de-localised cells out, as the paper does."""
+    import numpy as np
+
+    ok = [r for r in rows if "ate_odometry_m" in r]
+    seq = lambda r: Path(r.get("recorded", r["scenario"])).name  # noqa: E731
+    columns = sorted({seq(r) for r in rows})
+    groups = sorted({(r.get("odometry", "?"), r.get("weather", "?")) for r in rows})
+    t = Table(title=title, show_lines=False)
+    t.add_column("ATE (m)", no_wrap=True)
+    for c in columns:
+        t.add_column(c, justify="right")
+    t.add_column("Avg", justify="right", style="bold")
+
+    def cell(runs, key, flag):
+        kept = [r[key] for r in runs if not r[flag]]
+        return float(np.mean(kept)) if kept else None
+
+    for odo, weather in groups:
+        cells_o, cells_m = [], []
+        for c in columns:
+            runs = [r for r in ok if seq(r) == c and (r["odometry"], r["weather"]) == (odo, weather)]
+            failed = any(seq(r) == c and (r.get("odometry"), r.get("weather")) == (odo, weather) and "error" in r
+                         for r in rows)
+            cells_o.append("failed" if failed and not runs else cell(runs, "ate_odometry_m", "delocalized_odometry") if runs else "")
+            cells_m.append("failed" if failed and not runs else cell(runs, "ate_mapfusion_m", "delocalized_mapfusion") if runs else "")
+        fmt = lambda v: v if isinstance(v, str) else ("x" if v is None else f"{v:.2f}")  # noqa: E731
+        num = lambda vs: [v for v in vs if isinstance(v, float)]  # noqa: E731
+        both = [(a, b) for a, b in zip(cells_o, cells_m) if isinstance(a, float) and isinstance(b, float)]
+        avg = lambda v: f"{sum(v) / len(v):.2f}" if v else "–"  # noqa: E731
+        label = f"{odo.upper()} {weather.replace('_', ' ')}"
+        t.add_row(label, *[fmt(v) for v in cells_o], avg(num(cells_o)))
+        t.add_row(f"{label} + Map-Fusion", *[fmt(v) for v in cells_m], avg(num(cells_m)))
+        red = [f"{a - b:.2f}" if isinstance(a, float) and isinstance(b, float) else "NA" for a, b in zip(cells_o, cells_m)]
+        t.add_row("reduction", *red, avg([a - b for a, b in both]), style="italic", end_section=True)
+    return t
+
+
 @app.command()
 def run(
     paths: Annotated[list[Path], typer.Argument(help="Scenario or family TOML files.")],
@@ -491,6 +541,11 @@ def run(
     except InputError as exc:
         _fail(str(exc))
     scenarios = [sc for fam in families for sc in fam.scenarios]
+    skipped = [(name, why) for fam in families for name, why in fam.unavailable]
+    for name, why in skipped:
+        err_console.print(f"[yellow]skipped {name}:[/] {why}", highlight=False)
+    if not scenarios:
+        _fail(f"no run can be made here: {skipped[0][1]}" if skipped else "no runs")
     names = [sc.name for sc in scenarios]
     if len(set(names)) != len(names):
         _fail("two runs share a name: " + ", ".join(sorted({n for n in names if names.count(n) > 1})))

@@ -134,11 +134,20 @@ class ScaleEstimator:
 
 def heading_offset(gps_xy: np.ndarray, odo_xy: np.ndarray, min_step_m: float = 1.0) -> float | None:
     """Rotation (rad) taking odometry headings to ENU: the length-weighted circular mean, over
-    consecutive fixes, of the GPS displacement heading minus the odometry displacement heading."""
-    g = np.diff(np.asarray(gps_xy, dtype=float), axis=0)
-    o = np.diff(np.asarray(odo_xy, dtype=float), axis=0)
+    successive fixes at least ``min_step_m`` apart, of the GPS displacement heading minus the
+    odometry displacement heading over the same times. Fixes closer than that to the last kept one
+    are skipped, so 10 Hz fixes at walking pace still give headings (from their longer chords)."""
+    g = np.asarray(gps_xy, dtype=float)
+    o = np.asarray(odo_xy, dtype=float)
+    if len(g) < 2:
+        return None
+    keep = [0]
+    for i in range(1, len(g)):
+        if math.hypot(g[i, 0] - g[keep[-1], 0], g[i, 1] - g[keep[-1], 1]) > min_step_m:
+            keep.append(i)
+    g, o = np.diff(g[keep], axis=0), np.diff(o[keep], axis=0)
     lg, lo = np.hypot(*g.T), np.hypot(*o.T)
-    ok = (lg > min_step_m) & (lo > 1e-6)
+    ok = lo > 1e-6
     if not ok.any():
         return None
     d = np.arctan2(g[ok, 1], g[ok, 0]) - np.arctan2(o[ok, 1], o[ok, 0])

@@ -154,6 +154,18 @@ def import_kitti(poses_path: str | Path, times_path: str | Path, kml_path: str |
     return KittiImport(t, geo.camera_to_enu(poses), geo, track, alt0, filled)
 
 
+def track_at_camera(imp: KittiImport, projection: LocalProjection) -> np.ndarray:
+    """The RTK track moved from the antenna to camera 0 by the fitted lever arm: (N, 3) ENU metres
+    (z relative to the first track point's altitude)."""
+    g = imp.georef
+    # the antenna sits at the lever arm from camera 0: move every fix by it, in ENU
+    r_cam = np.einsum("ij,njk,kl->nil", g.rotation.T, imp.truth_enu[:, :3, :3], R_BODY_CAMERA)  # camera rotations
+    offset = g.scale * np.einsum("ij,njk,k->ni", g.rotation, r_cam, g.lever_arm_cam_m)
+    ax, ay = projection.to_enu(imp.track_lonlatalt[:, 1], imp.track_lonlatalt[:, 0])
+    return np.column_stack([np.asarray(ax) - offset[:, 0], np.asarray(ay) - offset[:, 1],
+                            imp.track_lonlatalt[:, 2] - imp.origin_alt_m - offset[:, 2]])
+
+
 def write_import(out: str | Path, imp: KittiImport, projection: LocalProjection, map_path: str,
                  gps_sigma_m: float = 0.05, gps_at_camera: bool = True) -> Path:
     """``truth.tum``, ``truth.csv``, ``gps.csv`` (the RTK track, moved from the antenna to camera 0 by
@@ -177,13 +189,9 @@ def write_import(out: str | Path, imp: KittiImport, projection: LocalProjection,
                     f"{lat[i]:.9f},{lon[i]:.9f},,,0,,{dist[i]:.3f},\n")
     tr = imp.track_lonlatalt.copy()
     if gps_at_camera:
-        # the antenna sits at the lever arm from camera 0: move every fix by it, in ENU
-        g = imp.georef
-        r_cam = np.einsum("ij,njk,kl->nil", g.rotation.T, imp.truth_enu[:, :3, :3], R_BODY_CAMERA)  # camera rotations
-        offset = g.scale * np.einsum("ij,njk,k->ni", g.rotation, r_cam, g.lever_arm_cam_m)
-        ax, ay = projection.to_enu(tr[:, 1], tr[:, 0])
-        lat_c, lon_c = projection.to_geo(np.asarray(ax) - offset[:, 0], np.asarray(ay) - offset[:, 1])
-        tr[:, 1], tr[:, 0], tr[:, 2] = lat_c, lon_c, tr[:, 2] - offset[:, 2]
+        cam = track_at_camera(imp, projection)
+        lat_c, lon_c = projection.to_geo(cam[:, 0], cam[:, 1])
+        tr[:, 1], tr[:, 0], tr[:, 2] = lat_c, lon_c, cam[:, 2] + imp.origin_alt_m
     write_gps_csv(d / "gps.csv", imp.t_s, tr[:, 1], tr[:, 0], tr[:, 2], np.full(len(tr), gps_sigma_m))
     g = imp.georef
     info = {"map": map_path, "frames": int(len(imp.t_s)), "residual_rmse_m": g.residual_rmse_m,

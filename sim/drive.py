@@ -90,29 +90,49 @@ def _find(ls, a: str, b: str) -> list[str]:
     return list(r.edges)
 
 
-def plan_route(ls, net: Network, rng: np.random.Generator, min_length_m: float, max_trips: int) -> list[str]:
-    """A seeded random route of at least ``min_length_m``: random trips chained end to start."""
+def _chain(ls, net: Network, rng: np.random.Generator, route: list[str], min_length_m: float, max_trips: int,
+           candidates: list[str]) -> list[str]:
+    """``route`` extended by random trips, end to start, until it is ``min_length_m`` long (or stuck)."""
+    for _trip in range(max_trips):
+        if _route_length(net, route) >= min_length_m:
+            break
+        nxt = []
+        for _try in range(10):
+            target = candidates[int(rng.integers(len(candidates)))]
+            if target == route[-1]:
+                continue
+            nxt = _find(ls, route[-1], target)
+            if len(nxt) > 1:
+                break
+        if len(nxt) <= 1:
+            break
+        route.extend(nxt[1:])
+    return route
+
+
+def plan_route(ls, net: Network, rng: np.random.Generator, min_length_m: float, max_trips: int,
+               via_tunnel: bool = False) -> list[str]:
+    """A seeded random route of at least ``min_length_m``: random trips chained end to start. With
+    ``via_tunnel`` a random OSM tunnel edge is on the route, reached after a lead-in of half the length."""
     candidates = [e for e in net.routable_edges if net.edges[e].length_m > 5.0] or net.routable_edges
+    tunnels = [e for e in net.routable_edges if net.edges[e].tunnel]
+    if via_tunnel and not tunnels:
+        raise RouteError("route.via_tunnel: the map has no tunnel (no OSM way tagged tunnel=yes or covered=yes)")
+    route: list[str] = []
     for _attempt in range(20):
         route = [candidates[int(rng.integers(len(candidates)))]]
-        for _trip in range(max_trips):
-            if _route_length(net, route) >= min_length_m:
-                return route
-            nxt = []
-            for _try in range(10):
-                target = candidates[int(rng.integers(len(candidates)))]
-                if target == route[-1]:
-                    continue
-                nxt = _find(ls, route[-1], target)
-                if len(nxt) > 1:
-                    break
-            if len(nxt) <= 1:
-                break
-            route.extend(nxt[1:])
+        if via_tunnel:
+            route = _chain(ls, net, rng, route, 0.5 * min_length_m, max_trips, candidates)
+            tunnel = tunnels[int(rng.integers(len(tunnels)))]
+            path = [tunnel] if tunnel == route[-1] else _find(ls, route[-1], tunnel)
+            if not path:
+                continue
+            route.extend(path[1:])
+        route = _chain(ls, net, rng, route, min_length_m, max_trips, candidates)
         if _route_length(net, route) >= min_length_m:
             return route
-    raise RouteError(f"no route of {min_length_m:.0f} m could be built on this map "
-                     f"(the longest chain reached {_route_length(net, route):.0f} m)")
+    raise RouteError(f"no route of {min_length_m:.0f} m{' through a tunnel' if via_tunnel else ''} could be built "
+                     f"on this map (the longest chain reached {_route_length(net, route):.0f} m)")
 
 
 def explicit_route(ls, net: Network, edges: tuple[str, ...]) -> list[str]:
@@ -159,7 +179,7 @@ def run_drive(sc: Scenario, road: RoadMap, net: Network | None = None, progress=
         if sc.route.edges:
             route = explicit_route(ls, net, sc.route.edges)
         else:
-            route = plan_route(ls, net, rng, sc.min_route_m, sc.route.max_trips)
+            route = plan_route(ls, net, rng, sc.min_route_m, sc.route.max_trips, sc.route.via_tunnel)
         ls.route.add("ego_route", route)
         ls.vehicletype.copy("DEFAULT_VEHTYPE", "ego_type")
         ls.vehicletype.setLength("ego_type", 4.5)

@@ -31,6 +31,10 @@ class FamilyPreset:
 
 _DRIVE = {"duration_s": 480.0, "min_route_m": 1500.0}
 
+#: Real data (shared/data/README.md), found through $MAPFUSION_DATA; runs are skipped where it is unset.
+DATA = "${MAPFUSION_DATA}"
+KITTI_SEQUENCES = ("00", "01", "02", "05", "07")
+
 PRESETS: dict[str, FamilyPreset] = {
     "clear": FamilyPreset(
         "KITTI-like: clear weather, GPS at the start only",
@@ -43,9 +47,11 @@ PRESETS: dict[str, FamilyPreset] = {
         claim="mean ATE reduction of at least 40% against odometry",
     ),
     "rain-tunnel": FamilyPreset(
-        "4Seasons-like: rain through GPS-denied, visually degraded zones, GPS every 5 s outside them",
-        {**_DRIVE, "gps": {"interval_s": 5.0}, "tunnels": [{"start_m": 600.0, "end_m": 900.0}]},
-        ("tunnel", "helsinki"), (1, 2), weather=("rain",), odometry=("vo", "vio"), gps_mode=("interval",),
+        "4Seasons-like: rain through GPS-denied, visually degraded zones and a real tunnel (Andorra: mountain roads, hairpins), GPS every 5 s outside them",
+        {**_DRIVE, "gps": {"interval_s": 5.0}, "tunnels": [{"start_m": 600.0, "end_m": 900.0}],
+         "route": {"via_tunnel": True}},
+        ("tunnel", "helsinki", f"{DATA}/osm/andorra.osm.pbf"), (1, 2), weather=("rain",), odometry=("vo", "vio"),
+        gps_mode=("interval",),
     ),
     "heavy-rain": FamilyPreset(
         "Singapore-like: heavy rain, GPS every 5 s",
@@ -53,9 +59,18 @@ PRESETS: dict[str, FamilyPreset] = {
         gps_mode=("interval",), claim="mean ATE reduction of at least 40% against odometry",
     ),
     "intersections": FamilyPreset(
-        "Junctions: drives through the roundabout, y-split, parallel-road and grid maps and Helsinki, scored by match rate",
-        {**_DRIVE, "min_route_m": 1200.0}, ("roundabout", "y-split", "parallel", "grid", "helsinki"), (1, 2),
+        "Junctions: drives through the roundabout, y-split, parallel-road and grid maps, Helsinki, and the real Berlin Großer Stern and North Bayreuth motorway links, scored by match rate",
+        {**_DRIVE, "min_route_m": 1200.0}, ("roundabout", "y-split", "parallel", "grid", "helsinki",
+                                             f"{DATA}/osm/berlin-siegessaeule.osm.gz",
+                                             f"{DATA}/osm/north-bayreuth.osm.gz"), (1, 2),
         claim="match rate at least 97%",
+    ),
+    "kitti": FamilyPreset(
+        "KITTI (paper Table I): the real drives with their real OSM, GPS from the RTK track for initialisation "
+        "only, odometry synthesised on the real truth",
+        {"duration_s": 86400.0, "gps": {"source": "recorded", "rate_hz": 10.0, "init_window_s": 30.0, "sigma_m": 0.5}},
+        (), (1,), weather=("clear", "rain"), odometry=("vo", "vio"),
+        extra_axes={"truth": [f"{DATA}/kitti/{n}" for n in KITTI_SEQUENCES]},
     ),
 }
 
@@ -71,10 +86,14 @@ def family_dict(name: str, maps=None, seeds=None, weather=None, odometry=None, g
         if seeds < 1:
             raise InputError(f"--seeds must be at least 1, got {seeds}")
         seeds = list(range(1, seeds + 1))
-    axes = {}
+    axes = {k: list(v) for k, v in p.extra_axes.items()}
+    if maps and not p.maps:
+        raise InputError(f"family {name} takes its maps from its recorded drives; --maps does not apply")
     for key, given, default in (("map", maps, p.maps), ("weather.kind", weather, p.weather),
                                 ("odometry.kind", odometry, p.odometry), ("gps.mode", gps_mode, p.gps_mode)):
         values = list(given) if given else list(default)
+        if key == "map" and not p.maps:
+            continue
         if not values:
             raise InputError(f"family {name}: no values for {key}")
         axes[key] = values

@@ -19,15 +19,17 @@ from mapfusion.runner import FusionResult, fuse, poses_to_arrays
 
 from .drive import DriveResult, run_drive
 from .network import build_network
-from .rundir import write_sensors, write_truth
-from .scenario import Scenario
+from .recorded import load_recorded, recorded_gps
+from .rundir import write_recorded_truth, write_sensors, write_truth
+from .scenario import GpsSource, Scenario
 from .sensors import SensorData, Truth, synthesise, under_bridges
 
 
 @dataclass
 class RunOutcome:
     metrics: dict
-    drive: DriveResult
+    drive: DriveResult | None  # None for a recorded drive
+    truth: Truth
     sensors: SensorData
     baseline: FusionResult
     mapfusion: FusionResult
@@ -41,14 +43,14 @@ def _online_arrays(res: FusionResult):
     return res.t_s[ok], xyz, yaw, ok
 
 
-def _evaluate(res: FusionResult, drive: DriveResult, prefix: str, deloc_m: float) -> dict:
+def _evaluate(res: FusionResult, truth: Truth, prefix: str, deloc_m: float) -> dict:
     t, xyz, yaw, _ = _online_arrays(res)
-    e = drive.ego
+    e = truth
     ia, ib = associate(t, e.t_s)
     gt = np.column_stack([e.x_m, e.y_m, e.z_m])[ib]
     a = ate(gt, xyz[ia])
     on = online_error(gt, e.yaw_rad[ib], xyz[ia])
-    tun = zone_rmse(gt, xyz[ia], e.in_tunnel[ib])
+    tun = zone_rmse(gt, xyz[ia], e.visually_degraded[ib])
     rpe = rpe_per_100m(gt, e.yaw_rad[ib], xyz[ia], yaw[ia])
     return {f"ate_{prefix}_m": a, f"delocalized_{prefix}": delocalized(a, deloc_m),
             f"online_rmse_{prefix}_m": on.rmse_m, f"online_max_{prefix}_m": on.max_m,
@@ -68,11 +70,19 @@ def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None,
     GPS, evaluate both, and (with ``out_dir``) write every file of the run directory."""
     cfg = sc.mapfusion
     road = RoadMap.from_osm(sc.map, RoadMapConfig(lane_width_m=cfg.lane_width_m))
-    net = build_network(sc.map)
-    drive = run_drive(sc, road, net, progress=progress)
-    bridges = under_bridges(road, drive.ego.x_m, drive.ego.y_m, drive.ego.osm_way)
-    truth = Truth.from_track(drive.ego, bridges, sc.gps)
-    sensors = synthesise(sc, truth)
+    drive = None
+    if sc.truth:  # a recorded drive: no SUMO
+        rec = load_recorded(sc.truth, sc, road)
+        truth = rec.truth
+        sensors = synthesise(sc, truth, recorded_gps(rec, sc.gps) if sc.gps.source is GpsSource.recorded else None)
+        route_length_m = rec.length_m
+    else:
+        net = build_network(sc.map)
+        drive = run_drive(sc, road, net, progress=progress)
+        bridges = under_bridges(road, drive.ego.x_m, drive.ego.y_m, drive.ego.osm_way)
+        truth = Truth.from_track(drive.ego, bridges, sc.gps)
+        sensors = synthesise(sc, truth)
+        route_length_m = drive.route_length_m
     fixes = fixes_of(sensors, road)
     odo = sensors.odometry
     base = fuse(road, odo.t_s, odo.poses, fixes, dataclasses.replace(cfg, use_map=False))
@@ -82,26 +92,34 @@ def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None,
     metrics: dict = {
         "scenario": sc.name, "seed": sc.seed, "map": Path(sc.map).name, "weather": sc.weather.kind.value,
         "odometry": sc.odometry.kind.value, "gps_mode": sc.gps.mode.value,
-        "route_length_m": drive.route_length_m, "duration_s": float(drive.ego.t_s[-1] - drive.ego.t_s[0]),
-        "frames": int(len(drive.ego)), "driven_m": float(drive.ego.distance_m[-1]),
+        "route_length_m": route_length_m, "duration_s": float(truth.t_s[-1] - truth.t_s[0]),
+        "frames": int(len(truth)), "driven_m": float(np.sum(np.hypot(np.diff(truth.x_m), np.diff(truth.y_m)))),
     }
+    if sc.truth:
+        metrics["recorded"] = sc.truth
+        if rec.georef_residual_m is not None:
+            metrics["georef_residual_m"] = rec.georef_residual_m
     if not (base.engine.initialised and mf.engine.initialised):
         metrics.update({"error": "the engine never initialised (too few GPS fixes while moving)"})
     else:
-        mb = _evaluate(base, drive, "odometry", cfg.delocalization_m)
-        mm = _evaluate(mf, drive, "mapfusion", cfg.delocalization_m)
+        mb = _evaluate(base, truth, "odometry", cfg.delocalization_m)
+        mm = _evaluate(mf, truth, "mapfusion", cfg.delocalization_m)
         metrics.update(mb)
         metrics.update(mm)
         metrics["ate_reduction_m"] = mb["ate_odometry_m"] - mm["ate_mapfusion_m"]
-        # match rate: frames outside junctions whose matched way is the way SUMO drives on
-        frames = odo.frame_index
-        matched = np.asarray(mf.engine.matched_way)
-        true_way = drive.ego.osm_way[frames]
-        sel = matched >= 0
-        # the contract's match rate (the very way SUMO drives on), and the same counting a way that
-        # merely continues it through a non-junction vertex (OSM splits roads anywhere) as a match
-        metrics["match_rate"] = match_rate(true_way[sel], matched[sel]) if sel.any() else None
-        metrics["match_rate_road"] = match_rate(true_way[sel], matched[sel], road.continuations()) if sel.any() else None
+        # match rate: frames outside junctions whose matched way is the way SUMO drives on (a
+        # recorded drive has no such truth: null)
+        metrics["match_rate"] = metrics["match_rate_road"] = None
+        if drive is not None:
+            frames = sensors.odometry.frame_index
+            matched = np.asarray(mf.engine.matched_way)
+            true_way = drive.ego.osm_way[frames]
+            sel = matched >= 0
+            # the contract's match rate (the very way SUMO drives on), and the same counting a way that
+            # merely continues it through a non-junction vertex (OSM splits roads anywhere) as a match
+            if sel.any():
+                metrics["match_rate"] = match_rate(true_way[sel], matched[sel])
+                metrics["match_rate_road"] = match_rate(true_way[sel], matched[sel], road.continuations())
         c = mf.engine.counters
         metrics.update({"map_priors": c.map_priors, "gps_used": c.gps_used,
                         "gps_rejected": c.gps_rejected_gate + c.gps_rejected_invalid,
@@ -111,14 +129,19 @@ def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None,
     for k, v in list(metrics.items()):
         if isinstance(v, float) and not math.isfinite(v):
             metrics[k] = None
-    outcome = RunOutcome(metrics, drive, sensors, base, mf, road)
+    outcome = RunOutcome(metrics, drive, truth, sensors, base, mf, road)
     if out_dir is not None:
         write_run(Path(out_dir), sc, outcome, plot=plot)
     return outcome
 
 
 def write_run(d: Path, sc: Scenario, o: RunOutcome, plot: bool = True) -> None:
-    write_truth(d, sc, o.drive)
+    if o.drive is not None:
+        write_truth(d, sc, o.drive)
+    else:
+        t = o.truth
+        write_recorded_truth(d, sc, t.t_s, np.column_stack([t.x_m, t.y_m, t.z_m]), t.yaw_rad, t.visually_degraded,
+                             o.road.projection)
     write_sensors(d, o.sensors, o.road.projection)
     for name, res in (("estimate_odometry.tum", o.baseline), ("estimate_mapfusion.tum", o.mapfusion)):
         t, _, _, ok = _online_arrays(res)

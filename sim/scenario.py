@@ -12,6 +12,8 @@ import copy
 import dataclasses
 import enum
 import itertools
+import os
+import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +28,31 @@ from mapfusion.maps import resolve_map
 
 class ScenarioError(ConfigError):
     """A scenario or family file is unusable (names the file and the key)."""
+
+
+class DataUnavailableError(ScenarioError):
+    """A path names an environment variable (``${MAPFUSION_DATA}/...``) that is not set: the run
+    needs real data this machine has not been pointed at. Families list such runs as unavailable."""
+
+
+_VAR = re.compile(r"\$\{(\w+)\}|\$(\w+)")
+
+
+def expand_data_path(value: str, key: str, where: str) -> str:
+    """``${VAR}`` / ``$VAR`` in a path replaced by the variable's value, made absolute (a relative
+    value is relative to the working directory, as the shell that set it meant)."""
+    if "$" not in value:
+        return value
+
+    def sub(m: re.Match) -> str:
+        var = m.group(1) or m.group(2)
+        val = os.environ.get(var)
+        if not val:
+            raise DataUnavailableError(f"{where}: {key} = {value!r} needs ${var}, which is not set "
+                                       f"(point it at the real data, e.g. {var}=../shared/data)")
+        return str(Path(val).expanduser().resolve())
+
+    return _VAR.sub(sub, value)
 
 
 class WeatherKind(str, enum.Enum):
@@ -51,6 +78,13 @@ class GpsMode(str, enum.Enum):
     continuous = "continuous"  # at rate_hz throughout
 
 
+class GpsSource(str, enum.Enum):
+    """Where the fixes come from."""
+
+    simulated = "simulated"  # the receiver model on the truth (σ, multipath outliers, denial)
+    recorded = "recorded"  # the recorded drive's own fixes (a KITTI RTK track, a run's gps.csv)
+
+
 @dataclass(frozen=True)
 class TrafficConfig:
     """``[traffic]``: other vehicles sharing the road with the ego vehicle."""
@@ -67,6 +101,8 @@ class RouteConfig:
 
     edges: tuple[str, ...] = param((), "SUMO edge ids the route passes, in order (joined by shortest paths).")
     max_trips: int = param(50, "Random trips chained at most to reach min_route_m.", min=1, max=1000)
+    via_tunnel: bool = param(False, "The random route passes through an OSM tunnel (tunnel=yes / covered=yes), reached "
+                             "after a random lead-in of half of min_route_m; an error on a map without one.")
 
 
 @dataclass(frozen=True)
@@ -81,6 +117,9 @@ class GpsConfig:
     """``[gps]``: the GPS receiver."""
 
     mode: GpsMode = param(GpsMode.init_only, "init_only | interval | continuous.")
+    source: GpsSource = param(GpsSource.simulated, "simulated | recorded: recorded takes the fixes of the recorded "
+                              "drive named by `truth` (KITTI: the RTK track moved to camera 0), at the times mode, "
+                              "rate_hz and interval_s select, declared with sigma_m; no noise or outliers are added.")
     interval_s: float = param(5.0, "Period of fixes in interval mode.", unit="s", min=0.0, exclusive_min=True,
                               source="paper IV.B ('GPS every 5 seconds')")
     rate_hz: float = param(1.0, "Fix rate in continuous mode and during initialisation.", unit="Hz", min=0.0,
@@ -139,6 +178,10 @@ class Scenario:
     duration_s: float = param(600.0, "Upper bound on simulated time.", unit="s", min=0.0, exclusive_min=True, max=86400.0)
     step_s: float = param(0.1, "SUMO step = odometry frame period.", unit="s", min=0.01, max=1.0)
     min_route_m: float = param(1500.0, "Minimum length of a random route.", unit="m", min=0.0, max=200000.0)
+    truth: str = param("", "A recorded drive instead of a SUMO drive: a KITTI sequence directory (poses.txt, "
+                       "times.txt, rtk_gps.kml; its map.osm is the default map), or a TUM trajectory in the map's "
+                       "ENU frame (a gps.csv beside it is its recorded GPS). Relative to the file; ${VAR} expands. "
+                       "Empty: SUMO drives.")
     traffic: TrafficConfig = param(TrafficConfig(), "[traffic]")
     route: RouteConfig = param(RouteConfig(), "[route]")
     weather: WeatherConfig = param(WeatherConfig(), "[weather]")
@@ -205,14 +248,39 @@ def _scenario_from_dict(data: dict, where: str, base_dir: Path | None, resolve: 
         if not isinstance(zones, list):
             raise ScenarioError(f"{where}: tunnels must be an array of tables ([[tunnels]])")
         kwargs["tunnels"] = tuple(from_mapping(TunnelZone, z, where, prefix=f"tunnels[{i}].") for i, z in enumerate(zones))
+    map_given = "map" in data
     top = from_mapping(Scenario, data, where) if data else Scenario()
     sc = dataclasses.replace(top, **kwargs)
-    if resolve:
-        try:
-            sc = dataclasses.replace(sc, map=str(resolve_map(sc.map, base_dir).resolve()))
-        except InputError as exc:
-            raise ScenarioError(f"{where}: map: {exc}") from None
+    if sc.gps.source is GpsSource.recorded and not sc.truth:
+        raise ScenarioError(f"{where}: gps.source = \"recorded\" needs a recorded drive (truth = ...)")
+    if not resolve:
+        return sc
+    if sc.truth:
+        truth = Path(expand_data_path(sc.truth, "truth", where)).expanduser()
+        if not truth.is_absolute() and base_dir is not None:
+            truth = base_dir / truth
+        if not truth.exists():
+            raise ScenarioError(f"{where}: truth: {truth}: no such file or directory")
+        if truth.is_dir():
+            missing = [f for f in KITTI_FILES if not (truth / f).exists()]
+            if missing:
+                raise ScenarioError(f"{where}: truth: {truth} is a directory but not a KITTI sequence "
+                                    f"(missing {', '.join(missing)})")
+            if not map_given:
+                sc = dataclasses.replace(sc, map=str(truth / "map.osm"))
+        sc = dataclasses.replace(sc, truth=str(truth.resolve()))
+    try:
+        mp = expand_data_path(sc.map, "map", where)
+        sc = dataclasses.replace(sc, map=str(resolve_map(mp, base_dir).resolve()))
+    except DataUnavailableError:
+        raise
+    except InputError as exc:
+        raise ScenarioError(f"{where}: map: {exc}") from None
     return sc
+
+
+#: What a KITTI sequence directory holds (shared/data/README.md); map.osm is optional.
+KITTI_FILES = ("poses.txt", "times.txt", "rtk_gps.kml")
 
 
 def _odometry_overrides(table: dict, where: str) -> tuple[tuple[str, float], ...]:
@@ -259,6 +327,9 @@ class Family:
     name: str
     scenarios: tuple[Scenario, ...]
     source: str
+    #: (run name, reason) of runs left out because their real data is not available here
+    #: (an unset ``${MAPFUSION_DATA}``); every other problem is an error.
+    unavailable: tuple[tuple[str, str], ...] = ()
 
 
 def _set_dotted(d: dict, dotted: str, value: Any) -> None:
@@ -271,6 +342,11 @@ def _set_dotted(d: dict, dotted: str, value: Any) -> None:
 
 
 def _slug(v: Any) -> str:
+    if isinstance(v, str) and v.startswith("$"):  # ${MAPFUSION_DATA}/osm/andorra.osm.pbf → andorra
+        name = Path(v).name
+        for ext in (".osm.pbf", ".osm.gz", ".osm.bz2", ".osm", ".pbf", ".tum"):
+            name = name.removesuffix(ext)
+        return name
     return str(v).replace("/", "-").replace(" ", "").replace(".osm.pbf", "").replace(".osm", "")
 
 
@@ -299,6 +375,7 @@ def expand_family(data: dict, where: str, base_dir: Path | None = None) -> Famil
         raise ScenarioError(f"{where}: [base] must be a table")
     keys = list(axes)
     scenarios = []
+    unavailable = []
     seen = set()
     for combo in itertools.product(*(axes[k] for k in keys)):
         for seed in seeds:
@@ -308,12 +385,16 @@ def expand_family(data: dict, where: str, base_dir: Path | None = None) -> Famil
             d["seed"] = seed
             parts = [name] + [_slug(v) for v in combo] + [f"s{seed}"]
             d["name"] = "-".join(parts)
-            sc = scenario_from_dict(d, f"{where} ({d['name']})", base_dir)
-            if sc.name in seen:
-                raise ScenarioError(f"{where}: two runs would be named {sc.name}")
-            seen.add(sc.name)
-            scenarios.append(sc)
-    return Family(name=name, scenarios=tuple(scenarios), source=where)
+            if d["name"] in seen:
+                raise ScenarioError(f"{where}: two runs would be named {d['name']}")
+            seen.add(d["name"])
+            try:
+                scenarios.append(scenario_from_dict(d, f"{where} ({d['name']})", base_dir))
+            except DataUnavailableError as exc:
+                unavailable.append((d["name"], str(exc)))
+    if not scenarios and not unavailable:
+        raise ScenarioError(f"{where}: the family has no runs")
+    return Family(name=name, scenarios=tuple(scenarios), source=where, unavailable=tuple(unavailable))
 
 
 def load_family(path: str | Path) -> Family:

@@ -112,41 +112,6 @@ class Truth:
                    np.asarray(track.z_m, float), np.asarray(track.yaw_rad, float), denied, tunnel)
 
 
-def truth_from_tum(path, sc, road) -> Truth:
-    """A recorded truth (TUM, in the scenario map's ENU frame) for the sensor models.
-
-    GPS-denied, visually degraded stretches are the scenario's ``[[tunnels]]`` zones by distance
-    along the path, plus frames under a bridge of the map (no road is known to be a tunnel: a
-    recorded drive has no SUMO edge). Raises InputError when the truth lies off the map.
-    """
-    from mapfusion.errors import InputError
-    from mapfusion.formats import quaternion_to_yaw, read_tum
-
-    from pathlib import Path as _Path
-
-    info = _Path(path).parent / "import.json"
-    if info.exists():  # mapfusion import kitti records the map whose frame the truth is in
-        import json
-
-        recorded = json.loads(info.read_text()).get("map")
-        if recorded and _Path(recorded).resolve() != _Path(sc.map).resolve():
-            raise InputError(f"{path}: this truth is in the ENU frame of {recorded}, not of the scenario's map {sc.map}")
-    t, xyz, q = read_tum(path)
-    lo, hi = road.xy_m.min(0) - 500.0, road.xy_m.max(0) + 500.0
-    inside = np.all((xyz[:, :2] >= lo) & (xyz[:, :2] <= hi), axis=1)
-    if inside.mean() < 0.5:
-        raise InputError(f"{path}: the truth lies off the map {sc.map} (is it in that map's ENU frame, "
-                         "as mapfusion import kitti writes it for the same map?)")
-    yaw = quaternion_to_yaw(q)
-    dist = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xyz[:, :2], axis=0).T))))
-    zone = np.zeros(len(t), dtype=bool)
-    for z in sc.tunnels:
-        zone |= (dist >= z.start_m) & (dist <= z.end_m)
-    bridge = under_bridges(road, xyz[:, 0], xyz[:, 1], np.full(len(t), -1))
-    denied = (zone if sc.gps.deny_in_tunnels else np.zeros_like(zone)) | (bridge if sc.gps.deny_under_bridges else False)
-    return Truth(t, xyz[:, 0].copy(), xyz[:, 1].copy(), xyz[:, 2].copy(), yaw, denied, zone)
-
-
 def under_bridges(road, x_m: np.ndarray, y_m: np.ndarray, osm_way: np.ndarray) -> np.ndarray:
     """Frames under a bridge: a bridge way of a higher layer passes within half its width + 1 m.
 
@@ -366,19 +331,19 @@ class GpsOutput:
     frame_index: np.ndarray
 
 
-def gps_fix_frames(truth: Truth, cfg: GpsConfig) -> np.ndarray:
-    """Truth frames at which a fix is taken, before denial: by mode, rate and interval."""
-    t = truth.t_s - truth.t_s[0]
-    period = 1.0 / cfg.rate_hz
+def gps_fix_times(t_s: np.ndarray, cfg: GpsConfig) -> np.ndarray:
+    """Indices into ``t_s`` (seconds from the start, increasing) at which a fix is taken, before
+    denial: by mode, rate and interval — the first time at or after each multiple of the period."""
+    t = np.asarray(t_s, float)
     want = np.zeros(len(t), dtype=bool)
-    # a fix at the first frame at or after each multiple of the period
-    def mark(times, until=np.inf):
-        for tt in times:
-            if tt > until:
-                break
-            i = int(np.searchsorted(t, tt - 1e-9))
-            if i < len(t):
-                want[i] = True
+    if len(t) == 0:
+        return np.flatnonzero(want)
+    period = 1.0 / cfg.rate_hz
+
+    def mark(times):
+        i = np.searchsorted(t, np.asarray(times) - 1e-9)
+        want[i[i < len(t)]] = True
+
     end = float(t[-1])
     if cfg.mode is GpsMode.continuous:
         mark(np.arange(0.0, end + 1e-9, period))
@@ -387,6 +352,11 @@ def gps_fix_frames(truth: Truth, cfg: GpsConfig) -> np.ndarray:
         if cfg.mode is GpsMode.interval:
             mark(np.arange(cfg.init_window_s, end + 1e-9, cfg.interval_s))
     return np.flatnonzero(want)
+
+
+def gps_fix_frames(truth: Truth, cfg: GpsConfig) -> np.ndarray:
+    """Truth frames at which a fix is taken, before denial: by mode, rate and interval."""
+    return gps_fix_times(truth.t_s - truth.t_s[0], cfg)
 
 
 def simulate_gps(truth: Truth, cfg: GpsConfig, rng: np.random.Generator) -> GpsOutput:
@@ -417,11 +387,12 @@ def sensor_streams(seed: int) -> dict[str, np.random.Generator]:
     return {name: np.random.default_rng(c) for name, c in zip(("odometry", "imu", "gps"), children)}
 
 
-def synthesise(sc: Scenario, truth: Truth) -> SensorData:
-    """Odometry (kind × weather preset with the scenario's overrides), IMU and GPS for a truth."""
+def synthesise(sc: Scenario, truth: Truth, gps: GpsOutput | None = None) -> SensorData:
+    """Odometry (kind × weather preset with the scenario's overrides), IMU and GPS for a truth;
+    ``gps`` (recorded fixes) replaces the receiver model."""
     params = odometry_preset(sc.odometry.kind, sc.weather.kind).with_overrides(sc.odometry.overrides)
     rng = sensor_streams(sc.seed)
     odo = simulate_odometry(truth, params, rng["odometry"], rain=WeatherKind(sc.weather.kind) is not WeatherKind.clear)
     imu = simulate_imu(truth, sc.imu, rng["imu"])
-    gps = simulate_gps(truth, sc.gps, rng["gps"])
+    gps = simulate_gps(truth, sc.gps, rng["gps"]) if gps is None else gps
     return SensorData(odo, imu, gps, params)

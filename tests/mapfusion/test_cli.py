@@ -277,3 +277,46 @@ def test_demo_runs_and_map_fusion_helps(tmp_path):
     assert (tmp_path / "demo" / "plot.png").stat().st_size > 10000
     # the demo drive is chosen to show the method at work: the map must help there
     assert m["ate_mapfusion_m"] < m["ate_odometry_m"] and m["online_rmse_mapfusion_m"] < m["online_rmse_odometry_m"]
+
+
+@pytest.mark.sumo
+def test_run_skips_runs_whose_data_is_unavailable(tmp_path, monkeypatch):
+    monkeypatch.delenv("NO_SUCH_DATA_VAR", raising=False)
+    fam = tmp_path / "f.toml"
+    fam.write_text('[family]\nname = "f"\n[family.axes]\nmap = ["grid", "${NO_SUCH_DATA_VAR}/x.osm"]\n'
+                   '[base]\nduration_s = 150.0\nmin_route_m = 800.0\n')
+    out = tmp_path / "out"
+    r = runner.invoke(app, ["run", str(fam), "--out", str(out), "--no-plot"])
+    assert r.exit_code == 0, r.output
+    assert "skipped f-x-s1" in r.stderr and "NO_SUCH_DATA_VAR" in r.stderr
+    rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert [row["scenario"] for row in rows] == ["f-grid-s1"]
+    only = tmp_path / "only.toml"
+    only.write_text('map = "${NO_SUCH_DATA_VAR}/x.osm"\n')
+    r = runner.invoke(app, ["run", str(only), "--out", str(tmp_path / "o2")])
+    assert r.exit_code == 2 and "NO_SUCH_DATA_VAR, which is not set" in r.stderr
+
+
+def test_table_one_has_sequences_as_columns():
+    from io import StringIO
+
+    from rich.console import Console
+
+    from mapfusion.cli import _table_one
+
+    def row(seq, weather, seed, o, m, deloc_o=False):
+        return {"scenario": f"kitti-{seq}-{weather}-vo-s{seed}", "recorded": f"/d/kitti/{seq}", "odometry": "vo",
+                "weather": weather, "ate_odometry_m": o, "ate_mapfusion_m": m, "ate_reduction_m": o - m,
+                "delocalized_odometry": deloc_o, "delocalized_mapfusion": False}
+
+    rows = [row("00", "clear", 1, 2.0, 1.0), row("00", "clear", 2, 4.0, 3.0), row("05", "clear", 1, 30.0, 2.0, True),
+            {"scenario": "kitti-05-rain-vo-s1", "recorded": "/d/kitti/05", "odometry": "vo", "weather": "rain",
+             "error": "boom"}, row("00", "rain", 1, 9.0, 3.0)]
+    buf = StringIO()
+    Console(file=buf, width=200).print(_table_one(rows, "t"))
+    lines = {ln.split("│")[1].strip(): [c.strip() for c in ln.split("│")[2:-1]] for ln in buf.getvalue().splitlines()
+             if ln.startswith("│")}
+    assert lines["VO clear"] == ["3.00", "x", "3.00"]  # the mean over seeds; de-localised cells left out of Avg
+    assert lines["VO clear + Map-Fusion"] == ["2.00", "2.00", "2.00"]
+    assert lines["VO rain"] == ["9.00", "failed", "9.00"]
+    assert "00" in buf.getvalue().splitlines()[2] and "05" in buf.getvalue().splitlines()[2]

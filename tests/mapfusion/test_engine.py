@@ -236,3 +236,18 @@ def test_estimate_is_none_before_initialisation(grid):
     eng.add_odometry(0.0, np.eye(4))
     assert eng.estimate() is None and not eng.initialised and eng.trajectory() == {}
     assert isinstance(gtsam.Pose3(), gtsam.Pose3)
+
+
+@given(rot=st.floats(-math.pi, math.pi), speed=st.floats(0.5, 9.0), seed=st.integers(0, 100))
+def test_heading_offset_from_dense_fixes(rot, speed, seed):
+    """10 Hz fixes closer together than a metre (a KITTI RTK track at town speed) still give the heading."""
+    rng = np.random.default_rng(seed)
+    n = 300
+    heading = np.cumsum(rng.normal(0, 0.01, n))
+    step = speed * 0.1
+    odo = np.cumsum(np.column_stack([np.cos(heading), np.sin(heading)]) * step, axis=0)
+    c, s = math.cos(rot), math.sin(rot)
+    gps = odo @ np.array([[c, -s], [s, c]]).T + rng.normal(0, 0.05, (n, 2))
+    got = heading_offset(gps, odo)
+    assert got is not None
+    assert abs(math.atan2(math.sin(got - rot), math.cos(got - rot))) < math.radians(1.0)

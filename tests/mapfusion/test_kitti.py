@@ -167,3 +167,20 @@ def test_simulate_on_a_recorded_truth(tmp_path):
     sc.write_text(f'name = "k07"\nmap = "{other / "map.osm"}"\nseed = 1\n')
     r = runner.invoke(app, ["simulate", str(sc), "--truth", str(run / "truth.tum"), "--out", str(tmp_path / "x")])
     assert r.exit_code == 2 and "ENU frame of" in r.stderr
+
+
+@needs_data
+def test_simulate_a_scenario_naming_a_kitti_sequence(tmp_path):
+    """`truth = "${MAPFUSION_DATA}/kitti/07"` in a scenario: the map and the recorded RTK GPS come with it."""
+    from mapfusion.formats import read_gps_csv, read_tum
+
+    sc = tmp_path / "s.toml"
+    sc.write_text('name = "k07"\ntruth = "${MAPFUSION_DATA}/kitti/07"\n'
+                  '[gps]\nsource = "recorded"\nrate_hz = 10.0\ninit_window_s = 20.0\nsigma_m = 0.5\n')
+    r = runner.invoke(app, ["simulate", str(sc), "--out", str(tmp_path / "run")])
+    assert r.exit_code == 0, r.output
+    t, _, _ = read_tum(tmp_path / "run" / "odometry.tum")
+    g = read_gps_csv(tmp_path / "run" / "gps.csv")
+    # 10 Hz for 20 s, less the fixes under a bridge of the map
+    assert len(t) > 1000 and 180 <= len(g.t_s) <= 202 and np.all(g.sigma_m == 0.5)
+    assert "kitti/07/map.osm" in (tmp_path / "run" / "scenario.toml").read_text()

@@ -170,3 +170,76 @@ def test_presets_differ_as_the_paper_says():
     assert clear_vio.scale_error_sigma < clear_vo.scale_error_sigma
     assert rain_vo.rain_episode_rate_per_km > 0 and rain_vo.rain_lateral_drift_m_per_m > 0
     assert dataclasses.replace(clear_vo, scale_error_sigma=0.1) == clear_vo.with_overrides((("scale_error_sigma", 0.1),))
+
+
+# ----------------------------------------------------------------------------- real data and recorded drives
+def _fake_kitti(d, map_src=None):
+    import shutil
+
+    from tests.helpers import MAPS
+
+    d.mkdir(parents=True, exist_ok=True)
+    for f in ("poses.txt", "times.txt", "rtk_gps.kml"):
+        (d / f).write_text("")
+    shutil.copy(map_src or MAPS / "synthetic" / "grid.osm", d / "map.osm")
+    return d
+
+
+def test_data_paths_expand_and_missing_data_is_unavailable(tmp_path, monkeypatch):
+    import os
+    import shutil
+
+    from sim.scenario import DataUnavailableError
+    from tests.helpers import MAPS
+
+    data = tmp_path / "data"
+    (data / "osm").mkdir(parents=True)
+    shutil.copy(MAPS / "synthetic" / "grid.osm", data / "osm" / "city.osm")
+    p = _write(tmp_path, '[family]\nname = "f"\n[family.axes]\nmap = ["grid", "${MYDATA}/osm/city.osm"]\n')
+    monkeypatch.delenv("MYDATA", raising=False)
+    fam = load_family(p)
+    assert [s.name for s in fam.scenarios] == ["f-grid-s1"]
+    assert [n for n, _ in fam.unavailable] == ["f-city-s1"] and "$MYDATA" in fam.unavailable[0][1]
+    with pytest.raises(DataUnavailableError, match=r"needs \$MYDATA"):
+        load_scenario(_write(tmp_path, 'map = "${MYDATA}/osm/city.osm"', "one.toml"))
+    # a relative value is relative to the working directory, not to the family file
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("MYDATA", "data")
+    fam = load_family(p)
+    assert len(fam.scenarios) == 2 and not fam.unavailable
+    assert fam.scenarios[1].map == str((data / "osm" / "city.osm").resolve())
+    # set, but pointing nowhere: an error, never a silent skip
+    monkeypatch.setenv("MYDATA", os.fspath(tmp_path / "nowhere"))
+    with pytest.raises(ScenarioError, match="no such map file"):
+        load_family(p)
+
+
+def test_recorded_drive_keys(tmp_path):
+    with pytest.raises(ScenarioError, match="needs a recorded drive"):
+        scenario_from_dict({"gps": {"source": "recorded"}}, "t")
+    with pytest.raises(ScenarioError, match="no such file or directory"):
+        scenario_from_dict({"truth": "nope.tum"}, "t", tmp_path)
+    (tmp_path / "half").mkdir()
+    (tmp_path / "half" / "poses.txt").write_text("")
+    with pytest.raises(ScenarioError, match="not a KITTI sequence .missing times.txt, rtk_gps.kml"):
+        scenario_from_dict({"truth": "half"}, "t", tmp_path)
+    seq = _fake_kitti(tmp_path / "seq")
+    sc = scenario_from_dict({"truth": "seq", "gps": {"source": "recorded"}}, "t", tmp_path)
+    assert sc.map == str((seq / "map.osm").resolve()) and sc.truth == str(seq.resolve())
+    assert scenario_from_dict({"truth": "seq", "map": "roundabout"}, "t", tmp_path).map.endswith("roundabout.osm")
+    # the resolved scenario round-trips
+    assert scenario_from_dict(tomllib.loads(sc.to_toml()), "again") == sc
+
+
+def test_kitti_family_file_names_runs_by_sequence(tmp_path, monkeypatch):
+    from tests.helpers import REPO
+
+    for s in ("00", "01", "02", "05", "07"):
+        _fake_kitti(tmp_path / "kitti" / s)
+    monkeypatch.setenv("MAPFUSION_DATA", str(tmp_path))
+    fam = load_family(REPO / "scenarios" / "families" / "kitti.toml")
+    names = {s.name for s in fam.scenarios}
+    assert len(names) == 20 and "kitti-00-clear-vo-s1" in names and "kitti-07-rain-vio-s1" in names
+    s = next(s for s in fam.scenarios if s.name == "kitti-05-rain-vo-s1")
+    assert s.truth == str((tmp_path / "kitti" / "05").resolve()) and s.map.endswith("05/map.osm")
+    assert s.gps.source.value == "recorded" and s.gps.mode is GpsMode.init_only and s.weather.kind is WeatherKind.rain

@@ -247,3 +247,21 @@ def test_imu_parameters_come_from_the_scenario():
     truth = synthetic_truth("straight", n=100)
     imu = simulate_imu(truth, sc.imu, np.random.default_rng(0))
     assert np.allclose(np.diff(imu.t_s), 1 / 200.0)
+
+
+@given(steps=st.lists(st.floats(0.01, 3.0), min_size=1, max_size=400), mode=st.sampled_from(list(GpsMode)),
+       rate=st.sampled_from([0.5, 1.0, 10.0]), window=st.floats(0.0, 100.0), interval=st.floats(0.5, 20.0))
+def test_gps_fix_times_are_the_first_times_after_each_tick(steps, mode, rate, window, interval):
+    """Irregular recorded times: a fix at the first time at or after each tick of the schedule."""
+    from sim.sensors import gps_fix_times
+
+    t = np.concatenate(([0.0], np.cumsum(steps)))
+    cfg = GpsConfig(mode=mode, rate_hz=rate, init_window_s=window, interval_s=interval)
+    if mode is GpsMode.continuous:
+        ticks = np.arange(0.0, t[-1] + 1e-9, 1.0 / rate)
+    else:
+        ticks = np.arange(0.0, min(window, t[-1]) + 1e-9, 1.0 / rate)
+        if mode is GpsMode.interval:
+            ticks = np.concatenate([ticks, np.arange(window, t[-1] + 1e-9, interval)])
+    want = sorted({next(i for i in range(len(t)) if t[i] >= k - 1e-9) for k in ticks if k <= t[-1] + 1e-9})
+    assert gps_fix_times(t, cfg).tolist() == want
