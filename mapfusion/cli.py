@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import inspect
 import json
+import os
 
 import numpy as np
 import logging
@@ -521,19 +522,12 @@ def _table_one(rows: list[dict], title: str) -> Table:
     return t
 
 
-@app.command()
-def run(
-    paths: Annotated[list[Path], typer.Argument(help="Scenario or family TOML files.")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Directory for the run directories and results.jsonl.")],
-    no_plot: Annotated[bool, typer.Option("--no-plot", help="Skip plot.png in each run directory.")] = False,
-) -> None:
-    """Each scenario (or every run of a family): simulate, baseline and Map-Fusion, evaluate; one run
-    directory each, results.jsonl, and the paper-style table."""
-    import traceback
+def _default_workers() -> int:
+    return max(1, os.cpu_count() or 1)
 
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from sim.run import run_scenario
+def _load_runs(paths: list[Path]):
+    """Scenarios of every file, the unavailable ones reported and left out; exit 2 on bad input."""
     from sim.scenario import load_family
 
     try:
@@ -549,29 +543,79 @@ def run(
     names = [sc.name for sc in scenarios]
     if len(set(names)) != len(names):
         _fail("two runs share a name: " + ", ".join(sorted({n for n in names if names.count(n) > 1})))
+    return scenarios
+
+
+class _RunBar:
+    """A progress bar of runs done, failed and remaining (silent off a terminal)."""
+
+    def __init__(self, total: int, label: str = "runs") -> None:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+        self.done = self.failed = 0
+        self.total = total
+        self.bar = Progress(TextColumn(f"[bold]{label}"), BarColumn(),
+                            TextColumn("{task.fields[done]} done, [red]{task.fields[failed]} failed[/], "
+                                       "{task.fields[left]} remaining"),
+                            TimeElapsedColumn(), TimeRemainingColumn(), console=err_console,
+                            disable=not err_console.is_terminal)
+        self.task = self.bar.add_task(label, total=total, done=0, failed=0, left=total)
+
+    def __enter__(self):
+        self.bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        self.bar.__exit__(*exc)
+
+    def advance(self, failed: bool) -> None:
+        self.done += not failed
+        self.failed += failed
+        self.bar.update(self.task, advance=1, done=self.done, failed=self.failed,
+                        left=self.total - self.done - self.failed)
+
+
+@app.command()
+def run(
+    paths: Annotated[list[Path], typer.Argument(help="Scenario or family TOML files.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Directory for the run directories and results.jsonl.")],
+    workers: Annotated[Optional[int], typer.Option("--workers", "-j", min=1,
+                                                   help="Runs at a time, each in its own process (default: the CPU count).")] = None,
+    scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="A Dask scheduler (tcp://HOST:PORT): the runs go to "
+                                                     "its workers instead of local processes.")] = None,
+    no_plot: Annotated[bool, typer.Option("--no-plot", help="Skip plot.png in each run directory.")] = False,
+) -> None:
+    """Each scenario (or every run of a family): simulate, baseline and Map-Fusion, evaluate; one run
+    directory each, results.jsonl (a line per finished run, appended at once), and the paper-style
+    table. Runs already in results.jsonl without error are skipped: the same command resumes."""
+    from sim.batch import ResultsLog, run_one, run_tasks
+
+    scenarios = _load_runs(paths)
     out.mkdir(parents=True, exist_ok=True)
-    rows = []
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=err_console, disable=not err_console.is_terminal) as bar:
-        task = bar.add_task("runs", total=len(scenarios))
-        for sc in scenarios:
-            bar.update(task, description=sc.name)
-            try:
-                row = run_scenario(sc, out / sc.name, plot=not no_plot).metrics
-            except InputError as exc:
-                row = {"scenario": sc.name, "seed": sc.seed, "error": str(exc)}
-            except Exception as exc:  # a failed run never loses the others
-                row = {"scenario": sc.name, "seed": sc.seed, "error": f"{type(exc).__name__}: {exc}",
-                       "traceback": traceback.format_exc(limit=5)}
-            rows.append(row)
-            with open(out / "results.jsonl", "a") as f:
-                f.write(json.dumps(row) + "\n")
-            bar.advance(task)
+    results = ResultsLog(out / "results.jsonl")
+    done = results.done()
+    todo = [sc for sc in scenarios if sc.name not in done]
+    if len(todo) < len(scenarios):
+        err_console.print(f"resuming: {len(scenarios) - len(todo)} of {len(scenarios)} runs already in {results.path}")
+    n_workers = workers or _default_workers()
+    with _RunBar(len(todo)) as bar:
+        def finished(job, rows):
+            for row in rows:
+                results.append(row)
+                bar.advance("error" in row)
+
+        def failed(job, err):
+            finished(job, [{"scenario": job[0].name, "seed": job[0].seed, **err}])
+
+        run_tasks([(sc, str(out), not no_plot) for sc in todo], run_one, workers=n_workers, on_rows=finished,
+                  on_failure=failed, scheduler=scheduler)
+    latest = results.latest()
+    rows = [latest[sc.name] for sc in scenarios if sc.name in latest]
     console.print(_paper_table(rows, f"ATE over {len(rows)} run(s) → {out}"))
-    failed = [r for r in rows if "error" in r]
-    for r in failed:
+    failed_rows = [r for r in rows if "error" in r]
+    for r in failed_rows:
         err_console.print(f"[red]{r['scenario']} failed:[/] {r['error']}", highlight=False)
-    if failed and len(failed) == len(rows):
+    if failed_rows and len(failed_rows) == len(rows):
         raise typer.Exit(1)
 
 

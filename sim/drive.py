@@ -111,9 +111,9 @@ def _chain(ls, net: Network, rng: np.random.Generator, route: list[str], min_len
 
 
 def plan_route(ls, net: Network, rng: np.random.Generator, min_length_m: float, max_trips: int,
-               via_tunnel: bool = False) -> list[str]:
+               via_tunnel: bool = False, tunnel_after_m: float = 1500.0) -> list[str]:
     """A seeded random route of at least ``min_length_m``: random trips chained end to start. With
-    ``via_tunnel`` a random OSM tunnel edge is on the route, reached after a lead-in of half the length."""
+    ``via_tunnel`` a random OSM tunnel edge is on the route, reached after a lead-in of ``tunnel_after_m``."""
     candidates = [e for e in net.routable_edges if net.edges[e].length_m > 5.0] or net.routable_edges
     tunnels = [e for e in net.routable_edges if net.edges[e].tunnel]
     if via_tunnel and not tunnels:
@@ -122,7 +122,7 @@ def plan_route(ls, net: Network, rng: np.random.Generator, min_length_m: float, 
     for _attempt in range(20):
         route = [candidates[int(rng.integers(len(candidates)))]]
         if via_tunnel:
-            route = _chain(ls, net, rng, route, 0.5 * min_length_m, max_trips, candidates)
+            route = _chain(ls, net, rng, route, tunnel_after_m, max_trips, candidates)
             tunnel = tunnels[int(rng.integers(len(tunnels)))]
             path = [tunnel] if tunnel == route[-1] else _find(ls, route[-1], tunnel)
             if not path:
@@ -179,7 +179,8 @@ def run_drive(sc: Scenario, road: RoadMap, net: Network | None = None, progress=
         if sc.route.edges:
             route = explicit_route(ls, net, sc.route.edges)
         else:
-            route = plan_route(ls, net, rng, sc.min_route_m, sc.route.max_trips, sc.route.via_tunnel)
+            route = plan_route(ls, net, rng, sc.min_route_m, sc.route.max_trips, sc.route.via_tunnel,
+                                   sc.route.tunnel_after_m)
         ls.route.add("ego_route", route)
         ls.vehicletype.copy("DEFAULT_VEHTYPE", "ego_type")
         ls.vehicletype.setLength("ego_type", 4.5)

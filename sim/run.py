@@ -14,12 +14,13 @@ import numpy as np
 
 from mapfusion.formats import GpsFixes, write_tum
 from mapfusion.metrics import associate, ate, delocalized, match_rate, online_error, rpe_per_100m, zone_rmse
+from mapfusion.config import FusionConfig
 from mapfusion.roadmap import RoadMap, RoadMapConfig
 from mapfusion.runner import FusionResult, fuse, poses_to_arrays
 
 from .drive import DriveResult, run_drive
 from .network import build_network
-from .recorded import load_recorded, recorded_gps
+from .recorded import RecordedDrive, load_recorded, recorded_gps
 from .rundir import write_recorded_truth, write_sensors, write_truth
 from .scenario import GpsSource, Scenario
 from .sensors import SensorData, Truth, synthesise, under_bridges
@@ -65,40 +66,57 @@ def fixes_of(sensors: SensorData, road: RoadMap) -> GpsFixes:
     return GpsFixes(g.t_s, np.asarray(lat), np.asarray(lon), np.asarray(g.alt_m), g.sigma_m)
 
 
-def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None, plot: bool = True) -> RunOutcome:
-    """Simulate ``sc``, run the baseline (map priors off) and Map-Fusion on the same sensors and
-    GPS, evaluate both, and (with ``out_dir``) write every file of the run directory."""
-    cfg = sc.mapfusion
-    road = RoadMap.from_osm(sc.map, RoadMapConfig(lane_width_m=cfg.lane_width_m))
-    drive = None
+@dataclass
+class Simulation:
+    """A scenario's drive and sensors: what a sweep simulates once and fuses many times."""
+
+    sc: Scenario
+    road: RoadMap
+    truth: Truth
+    drive: DriveResult | None  # None for a recorded drive
+    sensors: SensorData
+    route_length_m: float
+    recorded: RecordedDrive | None = None
+
+
+def simulate_scenario(sc: Scenario, progress=None) -> Simulation:
+    """Drive ``sc`` in SUMO (or load its recorded drive) and synthesise its sensors."""
+    road = RoadMap.from_osm(sc.map, RoadMapConfig(lane_width_m=sc.mapfusion.lane_width_m))
     if sc.truth:  # a recorded drive: no SUMO
         rec = load_recorded(sc.truth, sc, road)
-        truth = rec.truth
-        sensors = synthesise(sc, truth, recorded_gps(rec, sc.gps) if sc.gps.source is GpsSource.recorded else None)
-        route_length_m = rec.length_m
-    else:
-        net = build_network(sc.map)
-        drive = run_drive(sc, road, net, progress=progress)
-        bridges = under_bridges(road, drive.ego.x_m, drive.ego.y_m, drive.ego.osm_way)
-        truth = Truth.from_track(drive.ego, bridges, sc.gps)
-        sensors = synthesise(sc, truth)
-        route_length_m = drive.route_length_m
+        sensors = synthesise(sc, rec.truth, recorded_gps(rec, sc.gps) if sc.gps.source is GpsSource.recorded else None)
+        return Simulation(sc, road, rec.truth, None, sensors, rec.length_m, rec)
+    net = build_network(sc.map)
+    drive = run_drive(sc, road, net, progress=progress)
+    bridges = under_bridges(road, drive.ego.x_m, drive.ego.y_m, drive.ego.osm_way)
+    truth = Truth.from_track(drive.ego, bridges, sc.gps)
+    return Simulation(sc, road, truth, drive, synthesise(sc, truth), drive.route_length_m)
+
+
+def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult | None = None
+                      ) -> tuple[dict, FusionResult, FusionResult]:
+    """The baseline (map priors off; pass one to reuse it) and Map-Fusion with ``cfg`` on the
+    simulation's sensors, both evaluated: (metrics, baseline, Map-Fusion)."""
+    sc, truth, sensors = sim.sc, sim.truth, sim.sensors
+    road = sim.road
+    if road.config.lane_width_m != cfg.lane_width_m:
+        road = RoadMap.from_osm(sc.map, RoadMapConfig(lane_width_m=cfg.lane_width_m))
     fixes = fixes_of(sensors, road)
     odo = sensors.odometry
-    base = fuse(road, odo.t_s, odo.poses, fixes, dataclasses.replace(cfg, use_map=False))
+    base = baseline or fuse(road, odo.t_s, odo.poses, fixes, dataclasses.replace(cfg, use_map=False))
     t0 = time.perf_counter()
     mf = fuse(road, odo.t_s, odo.poses, fixes, cfg)
     fusion_fps = len(odo.t_s) / max(time.perf_counter() - t0, 1e-9)
     metrics: dict = {
         "scenario": sc.name, "seed": sc.seed, "map": Path(sc.map).name, "weather": sc.weather.kind.value,
         "odometry": sc.odometry.kind.value, "gps_mode": sc.gps.mode.value,
-        "route_length_m": route_length_m, "duration_s": float(truth.t_s[-1] - truth.t_s[0]),
+        "route_length_m": sim.route_length_m, "duration_s": float(truth.t_s[-1] - truth.t_s[0]),
         "frames": int(len(truth)), "driven_m": float(np.sum(np.hypot(np.diff(truth.x_m), np.diff(truth.y_m)))),
     }
-    if sc.truth:
+    if sim.recorded is not None:
         metrics["recorded"] = sc.truth
-        if rec.georef_residual_m is not None:
-            metrics["georef_residual_m"] = rec.georef_residual_m
+        if sim.recorded.georef_residual_m is not None:
+            metrics["georef_residual_m"] = sim.recorded.georef_residual_m
     if not (base.engine.initialised and mf.engine.initialised):
         metrics.update({"error": "the engine never initialised (too few GPS fixes while moving)"})
     else:
@@ -110,10 +128,10 @@ def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None,
         # match rate: frames outside junctions whose matched way is the way SUMO drives on (a
         # recorded drive has no such truth: null)
         metrics["match_rate"] = metrics["match_rate_road"] = None
-        if drive is not None:
+        if sim.drive is not None:
             frames = sensors.odometry.frame_index
             matched = np.asarray(mf.engine.matched_way)
-            true_way = drive.ego.osm_way[frames]
+            true_way = sim.drive.ego.osm_way[frames]
             sel = matched >= 0
             # the contract's match rate (the very way SUMO drives on), and the same counting a way that
             # merely continues it through a non-junction vertex (OSM splits roads anywhere) as a match
@@ -129,7 +147,15 @@ def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None,
     for k, v in list(metrics.items()):
         if isinstance(v, float) and not math.isfinite(v):
             metrics[k] = None
-    outcome = RunOutcome(metrics, drive, truth, sensors, base, mf, road)
+    return metrics, base, mf
+
+
+def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None, plot: bool = True) -> RunOutcome:
+    """Simulate ``sc``, run the baseline (map priors off) and Map-Fusion on the same sensors and
+    GPS, evaluate both, and (with ``out_dir``) write every file of the run directory."""
+    sim = simulate_scenario(sc, progress)
+    metrics, base, mf = fuse_and_evaluate(sim, sc.mapfusion)
+    outcome = RunOutcome(metrics, sim.drive, sim.truth, sim.sensors, base, mf, sim.road)
     if out_dir is not None:
         write_run(Path(out_dir), sc, outcome, plot=plot)
     return outcome

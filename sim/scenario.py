@@ -102,7 +102,9 @@ class RouteConfig:
     edges: tuple[str, ...] = param((), "SUMO edge ids the route passes, in order (joined by shortest paths).")
     max_trips: int = param(50, "Random trips chained at most to reach min_route_m.", min=1, max=1000)
     via_tunnel: bool = param(False, "The random route passes through an OSM tunnel (tunnel=yes / covered=yes), reached "
-                             "after a random lead-in of half of min_route_m; an error on a map without one.")
+                             "after a random lead-in of tunnel_after_m; an error on a map without one.")
+    tunnel_after_m: float = param(1500.0, "Random driving before the route heads for the tunnel (via_tunnel), so that "
+                                  "GPS initialisation is over before it (about 1 km at town speeds).", unit="m", min=0.0)
 
 
 @dataclass(frozen=True)

@@ -217,7 +217,7 @@ def test_route_via_tunnel_passes_a_tunnel(helsinki, helsinki_net):
     # Helsinki's SUMO network has two short tunnel edges; random routes of these seeds miss them
     tunnels = {e for e, info in helsinki_net.edges.items() if info.tunnel}
     for via in (False, True):
-        sc = _scenario(seed=1, duration_s=600.0, route={"via_tunnel": via})
+        sc = _scenario(seed=1, duration_s=600.0, route={"via_tunnel": via, "tunnel_after_m": 300.0})
         d = run_drive(sc, helsinki, helsinki_net)
         assert bool(tunnels & set(d.route_edges)) == via
         assert d.ego.in_tunnel.any() == via
