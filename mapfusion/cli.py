@@ -588,29 +588,17 @@ def run(
     """Each scenario (or every run of a family): simulate, baseline and Map-Fusion, evaluate; one run
     directory each, results.jsonl (a line per finished run, appended at once), and the paper-style
     table. Runs already in results.jsonl without error are skipped: the same command resumes."""
-    from sim.batch import ResultsLog, run_one, run_tasks
+    from sim.batch import ResultsLog, run_logged
 
     scenarios = _load_runs(paths)
     out.mkdir(parents=True, exist_ok=True)
-    results = ResultsLog(out / "results.jsonl")
-    done = results.done()
-    todo = [sc for sc in scenarios if sc.name not in done]
-    if len(todo) < len(scenarios):
-        err_console.print(f"resuming: {len(scenarios) - len(todo)} of {len(scenarios)} runs already in {results.path}")
-    n_workers = workers or _default_workers()
-    with _RunBar(len(todo)) as bar:
-        def finished(job, rows):
-            for row in rows:
-                results.append(row)
-                bar.advance("error" in row)
-
-        def failed(job, err):
-            finished(job, [{"scenario": job[0].name, "seed": job[0].seed, **err}])
-
-        run_tasks([(sc, str(out), not no_plot) for sc in todo], run_one, workers=n_workers, on_rows=finished,
-                  on_failure=failed, scheduler=scheduler)
-    latest = results.latest()
-    rows = [latest[sc.name] for sc in scenarios if sc.name in latest]
+    done = ResultsLog(out / "results.jsonl").done()
+    left = sum(sc.name not in done for sc in scenarios)
+    if left < len(scenarios):
+        err_console.print(f"resuming: {len(scenarios) - left} of {len(scenarios)} runs already in {out / 'results.jsonl'}")
+    with _RunBar(left) as bar:
+        rows, _ = run_logged(scenarios, out, workers=workers or _default_workers(), plot=not no_plot,
+                             scheduler=scheduler, on_row=lambda row: bar.advance("error" in row))
     console.print(_paper_table(rows, f"ATE over {len(rows)} run(s) → {out}"))
     failed_rows = [r for r in rows if "error" in r]
     for r in failed_rows:

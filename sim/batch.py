@@ -56,8 +56,11 @@ class ResultsLog:
     def append(self, row: dict) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         data = (json.dumps(row) + "\n").encode()
-        fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        fd = os.open(self.path, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o644)
         try:
+            size = os.fstat(fd).st_size
+            if size and os.pread(fd, 1, size - 1) != b"\n":
+                data = b"\n" + data  # a line torn by a dying writer stays on its own line
             os.write(fd, data)
         finally:
             os.close(fd)
@@ -173,3 +176,28 @@ def run_many(scenarios: Iterable[Scenario], workers: int = 2, out_dir: str | Pat
     jobs = [(sc, None if out_dir is None else str(out_dir), plot) for sc in scenarios]
     run_tasks(jobs, fn, workers=workers, on_rows=rows, on_failure=failed, scheduler=scheduler)
     return [by_name[sc.name] for sc in scenarios]
+
+
+def run_logged(scenarios: Iterable[Scenario], out_dir: str | Path, workers: int = 2, plot: bool = True,
+               scheduler: str | None = None, on_row: Callable[[dict], None] | None = None,
+               fn: Callable = run_one) -> tuple[list[dict], int]:
+    """The runs of ``scenarios`` not yet finished in ``out_dir/results.jsonl`` (resume), each row
+    appended as it finishes. Returns the latest row of every scenario and how many ran now."""
+    scenarios = list(scenarios)
+    results = ResultsLog(Path(out_dir) / "results.jsonl")
+    done = results.done()
+    todo = [sc for sc in scenarios if sc.name not in done]
+
+    def finished(job, rows):
+        for row in rows:
+            results.append(row)
+            if on_row:
+                on_row(row)
+
+    def failed(job, err):
+        finished(job, [{"scenario": job[0].name, "seed": job[0].seed, **err}])
+
+    run_tasks([(sc, str(out_dir), plot) for sc in todo], fn, workers=workers, on_rows=finished,
+              on_failure=failed, scheduler=scheduler)
+    latest = results.latest()
+    return [latest[sc.name] for sc in scenarios if sc.name in latest], len(todo)
