@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import inspect
 import json
+import math
 import os
 
 import numpy as np
@@ -605,6 +606,135 @@ def run(
         err_console.print(f"[red]{r['scenario']} failed:[/] {r['error']}", highlight=False)
     if failed_rows and len(failed_rows) == len(rows):
         raise typer.Exit(1)
+
+
+@app.command()
+def sweep(
+    paths: Annotated[list[Path], typer.Argument(help="Scenario or family TOML files.")],
+    param: Annotated[list[str], typer.Option("--param", "-p", help="NAME=V1,V2,... over a FusionConfig field, repeatable: "
+                                             "the grid is their product.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Directory for results.jsonl and sweep_heatmap.png.")],
+    workers: Annotated[Optional[int], typer.Option("--workers", "-j", min=1, help="Scenarios at a time (default: the CPU count).")] = None,
+    scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="A Dask scheduler (tcp://HOST:PORT).")] = None,
+) -> None:
+    """A grid over engine parameters: every scenario is simulated once and fused at every grid point.
+    results.jsonl gets a line per (run, grid point), with `params`; the same command resumes. Writes a
+    heatmap of the mean Map-Fusion ATE and prints the grid."""
+    from sim.batch import ResultsLog, run_tasks
+    from sim.sweep import grid_points, mean_ate_table, parse_grid, plot_heatmap, row_key, sweep_task
+
+    try:
+        grid = parse_grid(param)
+    except InputError as exc:
+        _fail(str(exc))
+    scenarios = _load_runs(paths)
+    out.mkdir(parents=True, exist_ok=True)
+    results = ResultsLog(out / "results.jsonl")
+    done = results.done(row_key)
+    points = grid_points(grid)
+    jobs = []
+    for sc in scenarios:
+        todo = [p for p in points if row_key({"scenario": sc.name, "params": p}) not in done]
+        if todo:
+            jobs.append((sc, todo))
+    left = sum(len(j[1]) for j in jobs)
+    if left < len(scenarios) * len(points):
+        err_console.print(f"resuming: {len(scenarios) * len(points) - left} of {len(scenarios) * len(points)} "
+                          f"fusions already in {results.path}")
+    sims = 0
+    with _RunBar(left, "fusions") as bar:
+        def finished(job, rows):
+            nonlocal sims
+            for row in rows:
+                sims += bool(row.get("simulated"))
+                results.append(row)
+                bar.advance("error" in row)
+
+        def failed(job, err):
+            finished(job, [{"scenario": job[0].name, "seed": job[0].seed, "params": p, **err} for p in job[1]])
+
+        run_tasks(jobs, sweep_task, workers=workers or _default_workers(), on_rows=finished, on_failure=failed,
+                  scheduler=scheduler)
+    names = {sc.name for sc in scenarios}
+    rows = [r for r in results.latest(row_key).values() if r.get("scenario") in names]
+    table = mean_ate_table(rows, grid)
+    t = Table(title=f"mean ATE (m) over {len(scenarios)} run(s) per grid point")
+    for k in grid:
+        t.add_column(k, justify="right")
+    for c in ("runs", "failed", "odometry", "+ Map-Fusion", "de-localised"):
+        t.add_column(c, justify="right")
+    for v in table.values():
+        t.add_row(*[str(v["params"][k]) for k in grid], str(v["runs"]), str(v["failed"]), f"{v['ate_odometry_m']:.2f}",
+                  f"{v['ate_mapfusion_m']:.2f}", str(v["delocalized"]))
+    console.print(t)
+    png = plot_heatmap(table, grid, out / "sweep_heatmap.png", f"mean Map-Fusion ATE, {len(scenarios)} run(s)")
+    console.print(f"{sims} simulation(s) for {left} fusion(s) this time; heatmap: {png}")
+
+
+@app.command()
+def tune(
+    paths: Annotated[list[Path], typer.Argument(help="Scenario or family TOML files.")],
+    trials: Annotated[int, typer.Option("--trials", "-n", min=1, help="Trials to add to the study.")] = 30,
+    out: Annotated[Path, typer.Option("--out", "-o", help="Directory for study.db and tune_sensitivity.png.")] = Path("tune"),
+    storage: Annotated[Optional[str], typer.Option("--storage", help="Optuna storage URL (default sqlite:///OUT/study.db); "
+                                                   "a shared one lets several processes work on one study.")] = None,
+    study: Annotated[Optional[str], typer.Option("--study", help="Study name (default: the first file's stem).")] = None,
+    range_: Annotated[Optional[list[str]], typer.Option("--range", help="NAME=LOW:HIGH, repeatable; replaces the default "
+                                                        "ranges (lane_width_m 1.5:6, yaw_sigma_deg 2:40, "
+                                                        "angle_weight_m_per_deg 0:4, search_radius_m 5:50).")] = None,
+    start: Annotated[Optional[list[str]], typer.Option("--start", help="NAME=VALUE,... a first trial to try, repeatable.")] = None,
+    penalty_m: Annotated[float, typer.Option("--penalty-m", min=0.0, help="Added to the objective per de-localised run (m).")] = 50.0,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the TPE sampler.")] = 0,
+) -> None:
+    """Optuna over lane width, yaw σ, angle weight and search radius: objective = mean Map-Fusion ATE
+    plus a penalty per de-localisation, each scenario simulated once. The paper's defaults are the
+    first trial; prints the best parameters against them and writes a sensitivity plot."""
+    from sim.sweep import PAPER_DEFAULTS, TUNE_RANGES, plot_sensitivity, tune as run_study
+
+    try:
+        ranges = dict(TUNE_RANGES) if not range_ else {}
+        for spec in range_ or []:
+            name, sep, span = spec.partition("=")
+            lo, sep2, hi = span.partition(":")
+            if not sep or not sep2:
+                raise InputError(f"--range {spec!r}: expected NAME=LOW:HIGH")
+            try:
+                ranges[name.strip()] = (float(lo), float(hi))
+            except ValueError:
+                raise InputError(f"--range {spec!r}: LOW and HIGH must be numbers") from None
+        starts = []
+        for spec in start or []:
+            d = {}
+            for part in spec.split(","):
+                k, sep, v = part.partition("=")
+                if not sep or k.strip() not in ranges:
+                    raise InputError(f"--start {spec!r}: expected NAME=VALUE,... over the tuned parameters ({', '.join(ranges)})")
+                try:
+                    d[k.strip()] = float(v)
+                except ValueError:
+                    raise InputError(f"--start {spec!r}: {k} must be a number") from None
+            starts.append(d)
+        scenarios = _load_runs(paths)
+        out.mkdir(parents=True, exist_ok=True)
+        url = storage or f"sqlite:///{(out / 'study.db').resolve()}"
+        name = study or paths[0].stem
+        with _RunBar(trials, "trials") as bar:
+            res = run_study(scenarios, trials, url, name, ranges, penalty_m, starts, seed,
+                            on_trial=lambda n, v: bar.advance(not math.isfinite(v)))
+    except InputError as exc:
+        _fail(str(exc))
+    t = Table(title=f"study {res.study_name}: {res.trials} trials over {len(scenarios)} run(s) ({res.storage})")
+    t.add_column("parameter")
+    t.add_column("paper", justify="right")
+    t.add_column("best", justify="right")
+    for k in ranges:
+        t.add_row(k, f"{PAPER_DEFAULTS.get(k, float('nan')):g}", f"{res.best_params.get(k, float('nan')):.3g}")
+    t.add_row("objective (m)", "–" if res.default_value is None else f"{res.default_value:.2f}", f"{res.best_value:.2f}")
+    t.add_row("mean ATE (m)", "–" if res.default_mean_ate_m is None else f"{res.default_mean_ate_m:.2f}",
+              f"{res.best_mean_ate_m:.2f}")
+    console.print(t)
+    png = plot_sensitivity(url, name, out / "tune_sensitivity.png")
+    console.print(f"sensitivity plot: {png}")
 
 
 @app.command()

@@ -1,0 +1,260 @@
+"""Parameter grids and Optuna studies over engine parameters (``mapfusion sweep`` / ``mapfusion tune``).
+
+Both simulate each scenario once and fuse it many times: the drive and the sensors do not depend
+on engine parameters. A sweep's task is one scenario with every grid point still to do; its rows
+carry ``params`` and ``simulated`` (true on the one row per simulation), so reuse is counted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mapfusion.config import FusionConfig, from_mapping, to_mapping
+from mapfusion.errors import ConfigError, InputError
+
+from .scenario import Scenario
+
+log = logging.getLogger(__name__)
+
+#: The parameters ``mapfusion tune`` searches by default, with their ranges (paper defaults inside).
+TUNE_RANGES: dict[str, tuple[float, float]] = {
+    "lane_width_m": (1.5, 6.0),
+    "yaw_sigma_deg": (2.0, 40.0),
+    "angle_weight_m_per_deg": (0.0, 4.0),
+    "search_radius_m": (5.0, 50.0),
+}
+PAPER_DEFAULTS = {k: getattr(FusionConfig(), k) for k in TUNE_RANGES}
+
+
+def with_params(cfg: FusionConfig, params: dict, where: str = "--param") -> FusionConfig:
+    """``cfg`` with ``params`` replaced, validated as a ``[mapfusion]`` table is (ConfigError)."""
+    return from_mapping(FusionConfig, {**to_mapping(cfg), **params}, where)
+
+
+def parse_grid(specs: list[str]) -> dict[str, list]:
+    """``["lane_width_m=2,3,4", ...]`` → {"lane_width_m": [2.0, 3.0, 4.0]}; every value validated."""
+    grid: dict[str, list] = {}
+    fields = {f.name: f for f in dataclasses.fields(FusionConfig)}
+    for spec in specs:
+        name, sep, values = spec.partition("=")
+        name = name.strip()
+        if not sep or not values.strip():
+            raise InputError(f"--param {spec!r}: expected NAME=V1,V2,...")
+        if name not in fields:
+            raise InputError(f"--param {name}: not a FusionConfig field (known: {', '.join(sorted(fields))})")
+        if name in grid:
+            raise InputError(f"--param {name} given twice")
+        out = []
+        for v in values.split(","):
+            v = v.strip()
+            try:
+                val = json.loads(v)
+            except json.JSONDecodeError:
+                val = v  # enum values and the like
+            if fields[name].type in ("float", float) and isinstance(val, int) and not isinstance(val, bool):
+                val = float(val)
+            with_params(FusionConfig(), {name: val}, f"--param {name}")
+            out.append(val)
+        grid[name] = out
+    if not grid:
+        raise InputError("give at least one --param NAME=V1,V2,...")
+    return grid
+
+
+def grid_points(grid: dict[str, list]) -> list[dict]:
+    keys = list(grid)
+    return [dict(zip(keys, combo)) for combo in itertools.product(*(grid[k] for k in keys))]
+
+
+def row_key(row: dict) -> str:
+    """A sweep row's identity: scenario and grid point."""
+    return f"{row['scenario']}|{json.dumps(row.get('params', {}), sort_keys=True)}"
+
+
+def _config_key(cfg: FusionConfig) -> str:
+    return json.dumps(to_mapping(cfg), sort_keys=True)
+
+
+def sweep_task(job: tuple[Scenario, list[dict]]) -> list[dict]:
+    """One scenario simulated once, then fused at every grid point (a task of ``run_tasks``)."""
+    from .run import fuse_and_evaluate, simulate_scenario
+
+    sc, points = job
+    try:
+        sim = simulate_scenario(sc)
+    except InputError as exc:
+        return [{"scenario": sc.name, "seed": sc.seed, "params": p, "error": str(exc)} for p in points]
+    rows, baselines = [], {}
+    for i, params in enumerate(points):
+        cfg = with_params(sc.mapfusion, params)
+        key = _config_key(dataclasses.replace(cfg, use_map=False))  # odometry priors read lane width and yaw σ
+        m, base, _ = fuse_and_evaluate(sim, cfg, baselines.get(key))
+        baselines[key] = base
+        m["params"] = params
+        m["simulated"] = i == 0
+        rows.append(m)
+    return rows
+
+
+def mean_ate_table(rows: list[dict], grid: dict[str, list]) -> dict[str, dict]:
+    """Per grid point (its JSON): mean Map-Fusion ATE, mean odometry ATE, runs, de-localised, failed."""
+    out = {}
+    for p in grid_points(grid):
+        k = json.dumps(p, sort_keys=True)
+        rs = [r for r in rows if json.dumps(r.get("params", {}), sort_keys=True) == k]
+        ok = [r for r in rs if "error" not in r]
+        out[k] = {"params": p, "runs": len(ok), "failed": len(rs) - len(ok),
+                  "ate_mapfusion_m": float(np.mean([r["ate_mapfusion_m"] for r in ok])) if ok else math.nan,
+                  "ate_odometry_m": float(np.mean([r["ate_odometry_m"] for r in ok])) if ok else math.nan,
+                  "delocalized": int(sum(r["delocalized_mapfusion"] for r in ok))}
+    return out
+
+
+def plot_heatmap(table: dict[str, dict], grid: dict[str, list], path: str | Path, title: str) -> Path:
+    """Mean Map-Fusion ATE over the grid's first two parameters (averaged over any others)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = list(grid)
+    kx = keys[0]
+    ky = keys[1] if len(keys) > 1 else None
+    ys = grid[ky] if ky else [None]
+    z = np.full((len(ys), len(grid[kx])), np.nan)
+    for j, yv in enumerate(ys):
+        for i, xv in enumerate(grid[kx]):
+            vals = [v["ate_mapfusion_m"] for v in table.values()
+                    if v["params"][kx] == xv and (ky is None or v["params"][ky] == yv) and v["runs"]]
+            if vals:
+                z[j, i] = float(np.mean(vals))
+    fig, ax = plt.subplots(figsize=(8, 6), dpi=100)
+    im = ax.imshow(z, origin="lower", cmap="viridis_r", aspect="auto")
+    ax.set_xticks(range(len(grid[kx])), [str(v) for v in grid[kx]])
+    ax.set_xlabel(kx)
+    if ky:
+        ax.set_yticks(range(len(ys)), [str(v) for v in ys])
+        ax.set_ylabel(ky)
+    else:
+        ax.set_yticks([])
+    for j in range(z.shape[0]):
+        for i in range(z.shape[1]):
+            if np.isfinite(z[j, i]):
+                ax.text(i, j, f"{z[j, i]:.2f}", ha="center", va="center", color="w" if z[j, i] > np.nanmean(z) else "k")
+    fig.colorbar(im, ax=ax, label="mean Map-Fusion ATE (m)")
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
+
+
+# ----------------------------------------------------------------------------- Optuna
+@dataclass
+class TuneResult:
+    best_params: dict
+    best_value: float
+    best_mean_ate_m: float
+    default_value: float | None
+    default_mean_ate_m: float | None
+    trials: int
+    study_name: str
+    storage: str
+
+
+def objective_value(rows: list[dict], penalty_m: float) -> tuple[float, float, int]:
+    """(objective, mean Map-Fusion ATE, de-localised): mean ATE over the runs plus ``penalty_m`` per
+    de-localised run; a failed run costs the penalty too."""
+    ok = [r for r in rows if "error" not in r]
+    deloc = sum(r["delocalized_mapfusion"] for r in ok) + (len(rows) - len(ok))
+    mean = float(np.mean([r["ate_mapfusion_m"] for r in ok])) if ok else math.inf
+    return mean + penalty_m * deloc, mean, deloc
+
+
+def tune(scenarios: list[Scenario], trials: int, storage: str, study_name: str,
+         ranges: dict[str, tuple[float, float]] | None = None, penalty_m: float = 50.0,
+         starts: list[dict] | None = None, seed: int = 0,
+         on_trial: Callable[[int, float], None] | None = None) -> TuneResult:
+    """Optuna (TPE, seeded) over ``ranges``; the paper's defaults and any ``starts`` are tried
+    first. The study lives in ``storage`` (e.g. SQLite), so a second call resumes it and
+    several processes can share it."""
+    import optuna
+
+    from .run import fuse_and_evaluate, simulate_scenario
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    ranges = ranges or TUNE_RANGES
+    for k, (lo, hi) in ranges.items():
+        with_params(FusionConfig(), {k: float(lo)}, f"--range {k}")
+        with_params(FusionConfig(), {k: float(hi)}, f"--range {k}")
+        if not lo < hi:
+            raise ConfigError(f"--range {k}: the low end {lo} must be below the high end {hi}")
+    sims = []
+    for sc in scenarios:  # simulated once, fused at every trial
+        sims.append(simulate_scenario(sc))
+    study = optuna.create_study(study_name=study_name, storage=storage, direction="minimize", load_if_exists=True,
+                                sampler=optuna.samplers.TPESampler(seed=seed))
+    if not study.trials:
+        defaults = {k: float(v) for k, v in PAPER_DEFAULTS.items() if k in ranges}
+        study.enqueue_trial(defaults, user_attrs={"start": "paper defaults"})
+        for s in starts or []:
+            study.enqueue_trial(s, user_attrs={"start": "given"})
+
+    def objective(trial) -> float:
+        params = {k: trial.suggest_float(k, lo, hi) for k, (lo, hi) in ranges.items()}
+        rows = []
+        for sim in sims:
+            cfg = with_params(sim.sc.mapfusion, params)
+            m, _, _ = fuse_and_evaluate(sim, cfg)
+            rows.append(m)
+        value, mean, deloc = objective_value(rows, penalty_m)
+        trial.set_user_attr("mean_ate_m", mean)
+        trial.set_user_attr("delocalized", deloc)
+        if on_trial:
+            on_trial(trial.number, value)
+        return value
+
+    study.optimize(objective, n_trials=trials)
+    best = study.best_trial
+    default = next((t for t in study.trials if t.user_attrs.get("start") == "paper defaults" and t.value is not None), None)
+    return TuneResult(best.params, best.value, best.user_attrs.get("mean_ate_m", math.nan),
+                      default.value if default else None, default.user_attrs.get("mean_ate_m") if default else None,
+                      len(study.trials), study_name, storage)
+
+
+def plot_sensitivity(storage: str, study_name: str, path: str | Path) -> Path:
+    """Objective against each tuned parameter over every finished trial; the paper's value dashed."""
+    import matplotlib
+    import optuna
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    study = optuna.load_study(study_name=study_name, storage=storage)
+    done = [t for t in study.trials if t.value is not None]
+    names = sorted({k for t in done for k in t.params})
+    fig, axes = plt.subplots(1, max(1, len(names)), figsize=(4 * max(1, len(names)), 4), dpi=100, squeeze=False)
+    vals = np.array([t.value for t in done])
+    finite = np.isfinite(vals)
+    for ax, k in zip(axes[0], names):
+        xs = np.array([t.params.get(k, np.nan) for t in done])
+        ax.scatter(xs[finite], vals[finite], c=np.arange(len(done))[finite], cmap="viridis", s=18)
+        if k in PAPER_DEFAULTS:
+            ax.axvline(PAPER_DEFAULTS[k], ls="--", c="grey", label="paper")
+            ax.legend(loc="upper right")
+        ax.set_xlabel(k)
+        ax.set_ylabel("objective (mean ATE + penalty, m)")
+    fig.suptitle(f"{study_name}: {len(done)} trials (colour: trial order)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
