@@ -1,0 +1,76 @@
+"""mapfusion sweep and mapfusion tune: simulations reused, resume, a study that improves."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from mapfusion.cli import app
+
+pytestmark = pytest.mark.sumo
+runner = CliRunner()
+
+TINY = ('[family]\nname = "tiny"\nseeds = [SEEDS]\n[family.axes]\nmap = ["grid"]\n'
+        '[base]\nduration_s = 150.0\nmin_route_m = 800.0\n[base.weather]\nkind = "rain"\n')
+
+
+def _family(tmp_path, seeds="1, 2"):
+    p = tmp_path / "tiny.toml"
+    p.write_text(TINY.replace("SEEDS", seeds))
+    return p
+
+
+def test_sweep_simulates_each_scenario_once_and_resumes(tmp_path):
+    fam = _family(tmp_path)
+    out = tmp_path / "sw"
+    args = ["sweep", str(fam), "-p", "lane_width_m=2,3", "-p", "yaw_sigma_deg=5,10", "--out", str(out), "--workers", "2"]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 0, r.output
+    assert "2 simulation(s) for 8 fusion(s)" in r.stdout
+    rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert len(rows) == 8 and sum(r["simulated"] for r in rows) == 2
+    assert {json.dumps(r["params"], sort_keys=True) for r in rows} == {
+        json.dumps({"lane_width_m": lw, "yaw_sigma_deg": ys}, sort_keys=True) for lw in (2.0, 3.0) for ys in (5.0, 10.0)}
+    assert (out / "sweep_heatmap.png").stat().st_size > 0
+    # the grid point at the defaults is what mapfusion run gets for the same scenario
+    run = runner.invoke(app, ["run", str(fam), "--out", str(tmp_path / "run"), "--no-plot"])
+    assert run.exit_code == 0, run.output
+    ref = {json.loads(x)["scenario"]: json.loads(x) for x in (tmp_path / "run" / "results.jsonl").read_text().splitlines()}
+    for r in rows:
+        if r["params"] == {"lane_width_m": 3.0, "yaw_sigma_deg": 10.0}:
+            assert r["ate_mapfusion_m"] == pytest.approx(ref[r["scenario"]]["ate_mapfusion_m"], abs=1e-9)
+            assert r["ate_odometry_m"] == pytest.approx(ref[r["scenario"]]["ate_odometry_m"], abs=1e-9)
+    again = runner.invoke(app, args)
+    assert again.exit_code == 0 and "0 simulation(s) for 0 fusion(s)" in again.stdout and "resuming" in again.stderr
+
+
+@pytest.mark.parametrize("param,needle", [("nope=1,2", "not a FusionConfig field"), ("lane_width_m=0.1", "lane_width_m"),
+                                          ("lane_width_m", "NAME=V1,V2")])
+def test_sweep_bad_params_exit_2(tmp_path, param, needle):
+    r = runner.invoke(app, ["sweep", str(_family(tmp_path)), "-p", param, "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and needle in r.stderr
+
+
+def test_tune_improves_on_a_deliberately_bad_start_and_resumes(tmp_path):
+    import optuna
+
+    fam = _family(tmp_path, "1")
+    out = tmp_path / "tn"
+    bad = "lane_width_m=6,yaw_sigma_deg=40,angle_weight_m_per_deg=4,search_radius_m=5"
+    r = runner.invoke(app, ["tune", str(fam), "--trials", "6", "--out", str(out), "--start", bad])
+    assert r.exit_code == 0, r.output
+    study = optuna.load_study(study_name="tiny", storage=f"sqlite:///{out / 'study.db'}")
+    start = next(t for t in study.trials if t.user_attrs.get("start") == "given")
+    assert start.params["search_radius_m"] == 5.0
+    assert study.best_value < start.value
+    assert "paper" in r.stdout and (out / "tune_sensitivity.png").stat().st_size > 0
+    r = runner.invoke(app, ["tune", str(fam), "--trials", "2", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert len(optuna.load_study(study_name="tiny", storage=f"sqlite:///{out / 'study.db'}").trials) == 8
+
+
+def test_tune_bad_range_exits_2(tmp_path):
+    r = runner.invoke(app, ["tune", str(_family(tmp_path, "1")), "--range", "lane_width_m=5:2", "--out", str(tmp_path / "t")])
+    assert r.exit_code == 2 and "below the high end" in r.stderr
