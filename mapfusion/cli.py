@@ -203,7 +203,7 @@ def maps_stress(
 
 @scenarios_app.command("generate")
 def scenarios_generate(
-    family: Annotated[str, typer.Option("--family", help="clear | rain | rain-tunnel | heavy-rain | intersections")],
+    family: Annotated[str, typer.Option("--family", help="clear | rain | rain-tunnel | heavy-rain | intersections | kitti")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Family file to write (TOML).")],
     maps: Annotated[Optional[list[str]], typer.Option("--maps", help="Maps (built-in names or OSM paths), repeatable.")] = None,
     seeds: Annotated[Optional[int], typer.Option("--seeds", help="Seeds 1..N.", min=1)] = None,
@@ -226,7 +226,9 @@ def scenarios_generate(
         out.write_text(text)
     except InputError as exc:
         _fail(str(exc))
-    console.print(f"wrote family {family} ({len(fam.scenarios)} runs) to {out}")
+    console.print(f"wrote family {family} ({len(fam.scenarios) + len(fam.unavailable)} runs) to {out}")
+    if fam.unavailable:
+        err_console.print(f"[yellow]{len(fam.unavailable)} of them cannot run here:[/] {fam.unavailable[0][1]}", highlight=False)
 
 
 @import_app.command("kitti")
