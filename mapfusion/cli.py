@@ -290,27 +290,23 @@ def simulate(
     except InputError as exc:
         _fail(str(exc))
     if truth is not None or sc.truth:
-        from sim.recorded import load_recorded, recorded_gps
         from sim.rundir import write_recorded_truth
-        from sim.scenario import GpsSource
+        from sim.run import simulate_scenario
 
-        src = truth if truth is not None else Path(sc.truth)
         try:
             if truth is not None:
                 if not truth.exists():
                     raise InputError(f"{truth}: no such file or directory")
                 sc = sc.replace(truth=str(truth.resolve()))
-            road = RoadMap.from_osm(sc.map)
-            rec = load_recorded(src, sc, road)
-            gps = recorded_gps(rec, sc.gps) if sc.gps.source is GpsSource.recorded else None
-            sensors = synthesise(sc, rec.truth, gps)
-            t = rec.truth
-            write_recorded_truth(out, sc, t.t_s, np.column_stack([t.x_m, t.y_m, t.z_m]), t.yaw_rad,
-                                 t.visually_degraded, road.projection)
-            write_sensors(out, sensors, road.projection)
+            src = sc.truth
+            sim = simulate_scenario(sc)  # a recorded drive: no SUMO
+            rec, sensors = sim.truth, sim.sensors
+            write_recorded_truth(out, sc, rec.t_s, np.column_stack([rec.x_m, rec.y_m, rec.z_m]), rec.yaw_rad,
+                                 rec.visually_degraded, sim.road.projection)
+            write_sensors(out, sensors, sim.road.projection)
         except InputError as exc:
             _fail(str(exc))
-        console.print(f"{sc.name}: sensors on the recorded truth {src} ({len(rec.truth):,} frames): "
+        console.print(f"{sc.name}: sensors on the recorded truth {src} ({len(rec):,} frames): "
                       f"{len(sensors.odometry.t_s):,} odometry frames, {len(sensors.gps.t_s)} GPS fixes → {out}")
         return
     try:
