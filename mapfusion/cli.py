@@ -609,20 +609,30 @@ def run(
 @app.command()
 def sweep(
     paths: Annotated[list[Path], typer.Argument(help="Scenario or family TOML files.")],
-    param: Annotated[list[str], typer.Option("--param", "-p", help="NAME=V1,V2,... over a FusionConfig field, repeatable: "
-                                             "the grid is their product.")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Directory for results.jsonl and sweep_heatmap.png.")],
+    param: Annotated[Optional[list[str]], typer.Option("--param", "-p", help="NAME=V1,V2,... over a FusionConfig field, "
+                                                       "repeatable: the grid is their product.")] = None,
+    variant: Annotated[Optional[list[str]], typer.Option("--variant", "-V", help="A named engine configuration, repeatable: "
+                                                         "'defaults', 'faithful' (the paper's section III read directly) "
+                                                         "or NAME=FILE.toml (a [mapfusion] table of overrides); "
+                                                         "crossed with the --param grid.")] = None,
     workers: Annotated[Optional[int], typer.Option("--workers", "-j", min=1, help="Scenarios at a time (default: the CPU count).")] = None,
     scheduler: Annotated[Optional[str], typer.Option("--scheduler", help="A Dask scheduler (tcp://HOST:PORT).")] = None,
 ) -> None:
-    """A grid over engine parameters: every scenario is simulated once and fused at every grid point.
-    results.jsonl gets a line per (run, grid point), with `params`; the same command resumes. Writes a
-    heatmap of the mean Map-Fusion ATE and prints the grid."""
+    """A grid over engine parameters and named configurations: every scenario is simulated once and
+    fused at every grid point. results.jsonl gets a line per (run, grid point), with `params` (a
+    variant's name under `variant`); the same command resumes. Writes a heatmap of the mean
+    Map-Fusion ATE and prints the grid."""
     from sim.batch import ResultsLog, run_tasks
-    from sim.sweep import grid_points, mean_ate_table, parse_grid, plot_heatmap, row_key, sweep_task
+    from sim.sweep import grid_points, mean_ate_table, parse_grid, parse_variants, plot_heatmap, row_key, sweep_task
 
     try:
-        grid = parse_grid(param)
+        if not param and not variant:
+            raise InputError("give at least one --param NAME=V1,V2,... or --variant")
+        variants = parse_variants(variant or [])
+        grid = {"variant": list(variants)} if variants else {}
+        if param:
+            grid.update(parse_grid(param))
     except InputError as exc:
         _fail(str(exc))
     scenarios = _load_runs(paths)
@@ -634,7 +644,7 @@ def sweep(
     for sc in scenarios:
         todo = [p for p in points if row_key({"scenario": sc.name, "params": p}) not in done]
         if todo:
-            jobs.append((sc, todo))
+            jobs.append((sc, todo, variants))
     left = sum(len(j[1]) for j in jobs)
     if left < len(scenarios) * len(points):
         err_console.print(f"resuming: {len(scenarios) * len(points) - left} of {len(scenarios) * len(points)} "

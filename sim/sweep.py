@@ -70,6 +70,59 @@ def parse_grid(specs: list[str]) -> dict[str, list]:
     return grid
 
 
+#: Named configurations every sweep knows: the engine's defaults and the paper's section III read directly.
+BUILTIN_VARIANTS = ("defaults", "faithful")
+
+
+def variant_params(cfg: FusionConfig) -> dict:
+    """The fields of ``cfg`` that differ from the defaults, as ``[mapfusion]`` values."""
+    base = to_mapping(FusionConfig())
+    return {k: v for k, v in to_mapping(cfg).items() if base.get(k) != v}
+
+
+def parse_variants(specs: list[str]) -> dict[str, dict]:
+    """``["faithful", "pose3=pose3.toml"]`` → {name: overrides}. A variant is a built-in name
+    (``defaults``, ``faithful``) or NAME=FILE.toml whose ``[mapfusion]`` table (or top-level keys)
+    overrides the scenario's engine configuration; every one is validated."""
+    import tomllib
+
+    out: dict[str, dict] = {}
+    for spec in specs:
+        name, sep, path = (x.strip() for x in spec.partition("="))
+        if not sep:
+            if name == "defaults":
+                params = {}
+            elif name == "faithful":
+                params = variant_params(FusionConfig.faithful())
+            else:
+                raise InputError(f"--variant {spec!r}: expected {' or '.join(BUILTIN_VARIANTS)}, or NAME=FILE.toml")
+        else:
+            if not name or not path:
+                raise InputError(f"--variant {spec!r}: expected NAME=FILE.toml")
+            try:
+                data = tomllib.loads(Path(path).read_text())
+            except OSError as exc:
+                raise InputError(f"--variant {name}: cannot read {path}: {exc.strerror}") from None
+            except tomllib.TOMLDecodeError as exc:
+                raise InputError(f"--variant {name}: {path}: {exc}") from None
+            params = data.get("mapfusion", data)
+            if not isinstance(params, dict):
+                raise InputError(f"--variant {name}: {path}: [mapfusion] must be a table")
+        if name in out:
+            raise InputError(f"--variant {name} given twice")
+        with_params(FusionConfig(), params, f"--variant {name}")
+        out[name] = params
+    return out
+
+
+def point_params(point: dict, variants: dict[str, dict] | None) -> dict:
+    """A grid point's engine overrides: its variant's (if any), then its own parameters."""
+    rest = {k: v for k, v in point.items() if k != "variant"}
+    if "variant" in point:
+        return {**(variants or {})[point["variant"]], **rest}
+    return rest
+
+
 def grid_points(grid: dict[str, list]) -> list[dict]:
     keys = list(grid)
     return [dict(zip(keys, combo)) for combo in itertools.product(*(grid[k] for k in keys))]
@@ -84,18 +137,20 @@ def _config_key(cfg: FusionConfig) -> str:
     return json.dumps(to_mapping(cfg), sort_keys=True)
 
 
-def sweep_task(job: tuple[Scenario, list[dict]]) -> list[dict]:
-    """One scenario simulated once, then fused at every grid point (a task of ``run_tasks``)."""
+def sweep_task(job: tuple) -> list[dict]:
+    """One scenario simulated once, then fused at every grid point (a task of ``run_tasks``).
+    ``job`` is (scenario, points) or (scenario, points, variants) when points name variants."""
     from .run import fuse_and_evaluate, simulate_scenario
 
-    sc, points = job
+    sc, points = job[0], job[1]
+    variants = job[2] if len(job) > 2 else None
     try:
         sim = simulate_scenario(sc)
     except InputError as exc:
         return [{"scenario": sc.name, "seed": sc.seed, "params": p, "error": str(exc)} for p in points]
     rows, baselines = [], {}
     for i, params in enumerate(points):
-        cfg = with_params(sc.mapfusion, params)
+        cfg = with_params(sc.mapfusion, point_params(params, variants))
         key = _config_key(dataclasses.replace(cfg, use_map=False))  # odometry priors read lane width and yaw σ
         m, base, _ = fuse_and_evaluate(sim, cfg, baselines.get(key))
         baselines[key] = base

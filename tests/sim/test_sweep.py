@@ -46,6 +46,45 @@ def test_sweep_simulates_each_scenario_once_and_resumes(tmp_path):
     assert again.exit_code == 0 and "0 simulation(s) for 0 fusion(s)" in again.stdout and "resuming" in again.stderr
 
 
+def test_sweep_variants_are_named_configurations(tmp_path):
+    fam = _family(tmp_path, "1")
+    narrow = tmp_path / "narrow.toml"
+    narrow.write_text("[mapfusion]\nlane_width_m = 2.0\n")
+    out = tmp_path / "sv"
+    r = runner.invoke(app, ["sweep", str(fam), "-V", "defaults", "-V", "faithful", "-V", f"narrow={narrow}",
+                            "--out", str(out), "--workers", "1"])
+    assert r.exit_code == 0, r.output
+    assert "1 simulation(s) for 3 fusion(s)" in r.stdout
+    rows = {r["params"]["variant"]: r for r in map(json.loads, (out / "results.jsonl").read_text().splitlines())}
+    assert set(rows) == {"defaults", "faithful", "narrow"}
+    # a variant file is the same as the equivalent grid point
+    grid = runner.invoke(app, ["sweep", str(fam), "-p", "lane_width_m=2,3", "--out", str(tmp_path / "sg"), "--workers", "1"])
+    assert grid.exit_code == 0, grid.output
+    by_lw = {r["params"]["lane_width_m"]: r for r in map(json.loads, (tmp_path / "sg" / "results.jsonl").read_text().splitlines())}
+    assert rows["narrow"]["ate_mapfusion_m"] == pytest.approx(by_lw[2.0]["ate_mapfusion_m"], abs=1e-9)
+    assert rows["defaults"]["ate_mapfusion_m"] == pytest.approx(by_lw[3.0]["ate_mapfusion_m"], abs=1e-9)
+    # the faithful reading changes the engine (free Pose3, ISAM2, no gates): not the defaults' figure
+    assert rows["faithful"]["ate_mapfusion_m"] != pytest.approx(rows["defaults"]["ate_mapfusion_m"], abs=1e-6)
+
+
+def test_parse_variants_faithful_is_the_papers_reading():
+    from mapfusion.config import FusionConfig
+    from sim.sweep import parse_variants, with_params
+
+    v = parse_variants(["faithful", "defaults"])
+    assert with_params(FusionConfig(), v["faithful"]) == FusionConfig.faithful()
+    assert with_params(FusionConfig(), v["defaults"]) == FusionConfig()
+
+
+@pytest.mark.parametrize("spec,needle", [("nope", "expected defaults or faithful"), ("x=missing.toml", "cannot read"),
+                                         ("x=BAD", "lane_width_m")])
+def test_sweep_bad_variant_exit_2(tmp_path, spec, needle):
+    (tmp_path / "bad.toml").write_text("[mapfusion]\nlane_width_m = 0.1\n")
+    spec = spec.replace("BAD", str(tmp_path / "bad.toml"))
+    r = runner.invoke(app, ["sweep", str(_family(tmp_path)), "-V", spec, "--out", str(tmp_path / "o")])
+    assert r.exit_code == 2 and needle in r.stderr, r.output
+
+
 @pytest.mark.parametrize("param,needle", [("nope=1,2", "not a FusionConfig field"), ("lane_width_m=0.1", "lane_width_m"),
                                           ("lane_width_m", "NAME=V1,V2")])
 def test_sweep_bad_params_exit_2(tmp_path, param, needle):
