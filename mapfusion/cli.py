@@ -450,34 +450,46 @@ def evaluate(
     console.print(t)
 
 
-def _paper_table(rows: list[dict], title: str, strip_prefix: str = "") -> Table:
+def _paper_table(rows: list[dict], title: str, strip_prefix: str = "", width: int | None = None) -> Table:
     """Runs as columns, rows odometry / + Map-Fusion / reduction (ATE, m); x = de-localised; the
-    average leaves the de-localised runs out, as the paper's tables do."""
-    t = Table(title=title, show_lines=False)
-    t.add_column("ATE (m)", no_wrap=True)
+    average leaves the de-localised runs out, as the paper's tables do. When the columns would not
+    fit in ``width`` characters, the same table turned: a row per run, then Avg."""
     ok = [r for r in rows if "ate_odometry_m" in r]
-    for r in rows:
-        t.add_column(r["scenario"].removeprefix(strip_prefix), justify="right")
-    t.add_column("Avg", justify="right", style="bold")
+    names = [r["scenario"].removeprefix(strip_prefix) for r in rows]
 
     def cell(r, key, flag):
         if "ate_odometry_m" not in r:
             return "failed"
         return "x" if r[flag] else f"{r[key]:.2f}"
 
+    def reduction(r):
+        if "ate_odometry_m" not in r or r["delocalized_odometry"] or r["delocalized_mapfusion"]:
+            return "NA"
+        return f"{r['ate_reduction_m']:.2f}"
+
     kept_o = [r["ate_odometry_m"] for r in ok if not r["delocalized_odometry"]]
     kept_m = [r["ate_mapfusion_m"] for r in ok if not r["delocalized_mapfusion"]]
     avg = lambda v: f"{sum(v) / len(v):.2f}" if v else "–"  # noqa: E731
-    t.add_row("odometry", *[cell(r, "ate_odometry_m", "delocalized_odometry") for r in rows], avg(kept_o))
-    t.add_row("+ Map-Fusion", *[cell(r, "ate_mapfusion_m", "delocalized_mapfusion") for r in rows], avg(kept_m))
-    red = []
-    for r in rows:
-        if "ate_odometry_m" not in r or r["delocalized_odometry"] or r["delocalized_mapfusion"]:
-            red.append("NA")
-        else:
-            red.append(f"{r['ate_reduction_m']:.2f}")
     both = [r for r in ok if not r["delocalized_odometry"] and not r["delocalized_mapfusion"]]
-    t.add_row("reduction", *red, avg([r["ate_reduction_m"] for r in both]), style="italic")
+    averages = (avg(kept_o), avg(kept_m), avg([r["ate_reduction_m"] for r in both]))
+    t = Table(title=title, show_lines=False)
+    needed = len("+ Map-Fusion") + sum(max(len(n), 7) + 3 for n in names) + 10
+    if width is not None and needed > width:
+        t.add_column("run", no_wrap=True)
+        for c in ("odometry", "+ Map-Fusion", "reduction"):
+            t.add_column(c, justify="right")
+        for n, r in zip(names, rows):
+            t.add_row(n, cell(r, "ate_odometry_m", "delocalized_odometry"),
+                      cell(r, "ate_mapfusion_m", "delocalized_mapfusion"), reduction(r))
+        t.add_row("Avg", *averages, style="bold")
+        return t
+    t.add_column("ATE (m)", no_wrap=True)
+    for n in names:
+        t.add_column(n, justify="right")
+    t.add_column("Avg", justify="right", style="bold")
+    t.add_row("odometry", *[cell(r, "ate_odometry_m", "delocalized_odometry") for r in rows], averages[0])
+    t.add_row("+ Map-Fusion", *[cell(r, "ate_mapfusion_m", "delocalized_mapfusion") for r in rows], averages[1])
+    t.add_row("reduction", *[reduction(r) for r in rows], averages[2], style="italic")
     return t
 
 
@@ -598,7 +610,7 @@ def run(
     with _RunBar(left) as bar:
         rows, _ = run_logged(scenarios, out, workers=workers or _default_workers(), plot=not no_plot,
                              scheduler=scheduler, on_row=lambda row: bar.advance("error" in row))
-    console.print(_paper_table(rows, f"ATE over {len(rows)} run(s) → {out}"))
+    console.print(_paper_table(rows, f"ATE over {len(rows)} run(s) → {out}", width=console.width))
     failed_rows = [r for r in rows if "error" in r]
     for r in failed_rows:
         err_console.print(f"[red]{r['scenario']} failed:[/] {r['error']}", highlight=False)

@@ -67,7 +67,7 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
             con.print(_table_one(rows, f"family {fam}: Table I, ATE (m) per KITTI sequence "
                                        "(synthetic odometry on the real drives, real OSM, RTK GPS for initialisation)"))
         else:
-            con.print(_paper_table(rows, f"family {fam}: ATE (m) per run", strip_prefix=f"{fam}-"))
+            con.print(_paper_table(rows, f"family {fam}: ATE (m) per run", strip_prefix=f"{fam}-", width=con.width))
         ok = [r for r in rows if "error" not in r]
         if ok:
             import numpy as np

@@ -322,3 +322,31 @@ def test_table_one_has_sequences_as_columns():
     assert lines["VO clear + Map-Fusion"] == ["2.00", "2.00", "2.00"]
     assert lines["VO rain"] == ["9.00", "failed", "9.00"]
     assert "00" in buf.getvalue().splitlines()[2] and "05" in buf.getvalue().splitlines()[2]
+
+
+@pytest.mark.parametrize("n,width,turned", [(3, 80, False), (40, 80, True), (40, 2000, False)])
+def test_paper_table_turns_when_the_runs_do_not_fit(n, width, turned):
+    from io import StringIO
+
+    from rich.console import Console
+
+    from mapfusion.cli import _paper_table
+
+    rows = [{"scenario": f"fam-helsinki-vo-s{i}", "ate_odometry_m": 4.0 + i, "ate_mapfusion_m": 2.0,
+             "ate_reduction_m": 2.0 + i, "delocalized_odometry": False, "delocalized_mapfusion": i == 1}
+            for i in range(n)]
+    buf = StringIO()
+    Console(file=buf, width=width).print(_paper_table(rows, "t", strip_prefix="fam-", width=width))
+    text = buf.getvalue()
+    assert all(len(ln) <= width for ln in text.splitlines())
+    cells = {ln.split("│")[1].strip(): [c.strip() for c in ln.split("│")[2:-1]] for ln in text.splitlines()
+             if ln.startswith("│")}
+    kept_m = [2.0 for i in range(n) if i != 1]
+    avg_o = sum(4.0 + i for i in range(n)) / n
+    if turned:  # a row per run, every name whole, then the averages (de-localised runs left out)
+        assert cells["helsinki-vo-s1"] == ["5.00", "x", "NA"]
+        assert cells["helsinki-vo-s39"] == ["43.00", "2.00", "41.00"]
+        assert cells["Avg"][:2] == [f"{avg_o:.2f}", f"{sum(kept_m) / len(kept_m):.2f}"]
+    else:
+        assert cells["odometry"][-1] == f"{avg_o:.2f}"
+        assert cells["+ Map-Fusion"][1] == "x"
