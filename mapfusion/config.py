@@ -252,6 +252,10 @@ class FusionConfig:
     prior_ambiguity_m: float = param(3.0, "No map prior when another way's best D is within this of the match's: "
                                      "at junctions and beside parallel roads the match is a coin toss.", unit="m", min=0.0,
                                      source="DESIGN item 7; by measurement")
+    prior_gate_sigma: float = param(0.0, "Reject a map prior whose lateral correction exceeds this many σ of the "
+                                    "estimate's positional uncertainty combined with half the road width (a lost "
+                                    "estimate snapping onto a neighbouring road); 0: no gate.", min=0.0,
+                                    source="issue 6 (wrong-road lock-in); by measurement")
     prior_on_joins: bool = param(False, "Allow map priors from way-points on the rounded joins inside junctions.",
                                  source="DESIGN item 7; by measurement")
     continuity_slack_m: float = param(5.0, "An unrestricted match wins over the continuity match only when "

@@ -560,7 +560,9 @@ class MapFusion:
         r_pose, lateral = map_pose(m, pred)
         if lateral <= width:
             return False
+        gate = self.cfg.prior_gate_sigma
         if m.angle_deg > self.cfg.prior_max_angle_deg or (m.is_join and not self.cfg.prior_on_joins) \
+                or (gate > 0 and lateral > gate * math.hypot(self._pos_sigma, 0.5 * width)) \
                 or self._ambiguous(m, pred):
             self.counters.priors_gated += 1
             return False

@@ -185,6 +185,54 @@ def test_map_bounds_lateral_drift_on_a_straight_road(tmp_path):
     assert np.all(np.diff(base[truth.t_s > 200.0][::100]) > 0)
 
 
+def _biased_straight_drive(tmp_path):
+    road_path = write_osm(tmp_path, [(straight_road(2500.0, 0.0, (-100.0, 0.0)), {"highway": "primary", "lanes": "2"})], origin=ORIGIN)
+    road = RoadMap.from_osm(road_path, RoadMapConfig(origin_lat_deg=ORIGIN[0], origin_lon_deg=ORIGIN[1]), cache=False)
+    truth = synthetic_truth("straight", n=2200, speed_mps=10.0)
+    T = _poses(truth)
+    rel = np.einsum("nij,njk->nik", np.linalg.inv(T[:-1]), T[1:])
+    rel[:, 1, 3] += np.where(truth.t_s[1:] > 160.0, 0.03 * rel[:, 0, 3], 0.0)
+    acc = [T[0]]
+    for r in rel:
+        acc.append(acc[-1] @ r)
+    gt, gxy = _gps(truth, sigma=1.0, until_s=150.0)
+    return road, truth, np.asarray(acc), gt, gxy
+
+
+def test_prior_gate_rejects_corrections_beyond_the_estimates_uncertainty(tmp_path):
+    road, truth, odo, gt, gxy = _biased_straight_drive(tmp_path)
+    runs = {}
+    for gate in (0.0, 0.1, 1000.0):
+        eng = _feed(MapFusion(road, FusionConfig(prior_gate_sigma=gate)), road, truth.t_s, odo, gt, gxy, sigma=1.0)
+        runs[gate] = (eng.counters, _online_xy(eng)[1])
+    # a correction is only ever proposed beyond the road width, which is more than 0.1 σ of
+    # (positional σ ⊕ half the width): the tight gate rejects every one
+    assert runs[0.0][0].map_priors > 0
+    assert runs[0.1][0].map_priors == 0 and runs[0.1][0].priors_gated >= runs[0.0][0].map_priors
+    # a gate far wider than any correction changes nothing
+    assert runs[1000.0][0].map_priors == runs[0.0][0].map_priors
+    np.testing.assert_allclose(runs[1000.0][1], runs[0.0][1])
+
+
+def test_the_baseline_ignores_the_map_only_fields(tmp_path):
+    from sim.sweep import MAP_ONLY_FIELDS, _baseline_key
+
+    road, truth, odo, gt, gxy = _biased_straight_drive(tmp_path)
+    changed = dict(angle_weight_m_per_deg=3.0, search_radius_m=7.0, prior_mode=PriorMode.paper,
+                   prior_lambda_floor_m2=1.0, robust_kernel="cauchy", robust_k=3.0, match_continuity=False,
+                   prior_max_angle_deg=90.0, prior_ambiguity_m=0.0, prior_on_joins=True, continuity_slack_m=1.0,
+                   prior_gate_sigma=2.0)
+    assert set(changed) == MAP_ONLY_FIELDS
+    base = FusionConfig(use_map=False)
+    other = FusionConfig(use_map=False, **{k: (v if k != "robust_kernel" else type(base.robust_kernel)(v))
+                                           for k, v in changed.items()})
+    assert _baseline_key(base) == _baseline_key(other)
+    assert _baseline_key(base) != _baseline_key(FusionConfig(use_map=False, lane_width_m=2.0))
+    a = _online_xy(_feed(MapFusion(road, base), road, truth.t_s, odo, gt, gxy, sigma=1.0))[1]
+    b = _online_xy(_feed(MapFusion(road, other), road, truth.t_s, odo, gt, gxy, sigma=1.0))[1]
+    np.testing.assert_array_equal(a, b)
+
+
 # ----------------------------------------------------------------------------- backends agree
 def test_fixed_lag_and_isam2_agree_on_a_short_drive(grid):
     truth = synthetic_truth("random", n=500, speed_mps=8.0, seed=5)
