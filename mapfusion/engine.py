@@ -589,7 +589,9 @@ class MapFusion:
         self._last_cov_check_t = self._t[k]
         try:
             cov = self._smoother.covariance(X(self._last_updated_key))
-        except RuntimeError:
+        except (RuntimeError, IndexError):
+            # no marginal for that key (e.g. ISAM2 re-anchored after a failed Cholesky update and
+            # the key is not in the new Bayes tree): skip this check, the next one will have one
             return
         sig = math.sqrt(max(np.linalg.eigvalsh(cov[3:5, 3:5]).max(), 0.0))
         self._pos_sigma = sig
@@ -730,9 +732,9 @@ class MapFusion:
             pose = sm.pose(X(latest))
             self._last_updated_key, self._last_updated_pose = latest, pose
             self._online[latest] = pose
-        except RuntimeError as exc:  # IndeterminantLinearSystem and the like
+        except (RuntimeError, IndexError) as exc:  # IndeterminantLinearSystem, std::out_of_range and the like
             self.counters.recoveries += 1
-            log.warning("GTSAM failed (%s): re-anchoring at the last good estimate", str(exc).splitlines()[0])
+            log.warning("GTSAM failed (%s): re-anchoring at the last good estimate", (str(exc).strip().splitlines() or [type(exc).__name__])[0])
             self._reanchor(p)
         self.counters.updates += 1
         self._pending = _Pending()
@@ -780,5 +782,5 @@ class MapFusion:
             self._smoother.update(g, v, stamps)
             latest = max([anchor_k] + [k for k in failed.keys if k > anchor_k])
             self._last_updated_key, self._last_updated_pose = latest, self._smoother.pose(X(latest))
-        except RuntimeError:
+        except (RuntimeError, IndexError):
             log.error("re-anchoring failed too; continuing from the odometry")

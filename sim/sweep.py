@@ -12,6 +12,7 @@ import itertools
 import json
 import logging
 import math
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -162,10 +163,15 @@ def sweep_task(job: tuple) -> list[dict]:
         return [{"scenario": sc.name, "seed": sc.seed, "params": p, "error": str(exc)} for p in points]
     rows, baselines = [], {}
     for i, params in enumerate(points):
-        cfg = with_params(sc.mapfusion, point_params(params, variants))
-        key = _baseline_key(cfg)  # odometry priors read lane width and yaw σ
-        m, base, _ = fuse_and_evaluate(sim, cfg, baselines.get(key))
-        baselines[key] = base
+        try:
+            cfg = with_params(sc.mapfusion, point_params(params, variants))
+            key = _baseline_key(cfg)  # odometry priors read lane width and yaw σ
+            m, base, _ = fuse_and_evaluate(sim, cfg, baselines.get(key))
+            baselines[key] = base
+        except Exception as exc:  # noqa: BLE001 - one failed grid point must not cost the others
+            log.warning("%s at %s failed: %r", sc.name, params, exc)
+            m = {"scenario": sc.name, "seed": sc.seed, "error": f"{type(exc).__name__}: {exc}",
+                 "traceback": traceback.format_exc()}
         m["params"] = params
         m["simulated"] = i == 0
         rows.append(m)

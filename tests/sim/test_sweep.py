@@ -113,3 +113,42 @@ def test_tune_improves_on_a_deliberately_bad_start_and_resumes(tmp_path):
 def test_tune_bad_range_exits_2(tmp_path):
     r = runner.invoke(app, ["tune", str(_family(tmp_path, "1")), "--range", "lane_width_m=5:2", "--out", str(tmp_path / "t")])
     assert r.exit_code == 2 and "below the high end" in r.stderr
+
+
+def test_a_failing_grid_point_costs_only_itself(tmp_path, monkeypatch):
+    import sim.run
+
+    real = sim.run.fuse_and_evaluate
+
+    def flaky(simulation, cfg, baseline=None):
+        if cfg.lane_width_m == 2.0:
+            raise IndexError("boom at 2 m")
+        return real(simulation, cfg, baseline)
+
+    monkeypatch.setattr(sim.run, "fuse_and_evaluate", flaky)  # the forked worker inherits it
+    out = tmp_path / "sf"
+    r = runner.invoke(app, ["sweep", str(_family(tmp_path, "1")), "-p", "lane_width_m=2,3", "--out", str(out),
+                            "--workers", "1"])
+    assert r.exit_code == 0, r.output
+    rows = {r["params"]["lane_width_m"]: r for r in map(json.loads, (out / "results.jsonl").read_text().splitlines())}
+    assert rows[2.0]["error"] == "IndexError: boom at 2 m" and "traceback" in rows[2.0]
+    assert "error" not in rows[3.0] and rows[3.0]["ate_mapfusion_m"] > 0
+
+
+def test_isam2_with_cholesky_survives_a_failed_update():
+    """The tunnel run that made ISAM2's Cholesky fail: the engine re-anchors and asks no marginal of
+    a key the new Bayes tree does not hold (it raised IndexError before)."""
+    from pathlib import Path
+
+    from mapfusion.config import Backend, Factorization
+    from sim.run import fuse_and_evaluate, simulate_scenario
+    from sim.scenario import load_family
+    from sim.sweep import with_params
+
+    fam = load_family(Path(__file__).parents[2] / "scenarios" / "families" / "rain-tunnel.toml")
+    sc = next(s for s in fam.scenarios if s.name == "rain-tunnel-tunnel-vo-s2")
+    simulation = simulate_scenario(sc)
+    cfg = with_params(sc.mapfusion, {"backend": Backend.isam2.value, "factorization": Factorization.cholesky.value})
+    m, base, mf = fuse_and_evaluate(simulation, cfg)
+    assert "error" not in m
+    assert base.engine.counters.recoveries + mf.engine.counters.recoveries > 0  # the failure did happen
