@@ -271,6 +271,12 @@ class FusionConfig:
                                     "(the paper, for frames whose scale is unknown); false: with the post-initialisation "
                                     "σ inflated by the scale's uncertainty, since the batch is solved once the scale is known.",
                                     source="paper IV.B; by measurement")
+    scale_fit_max_disagreement_sigma: float = param(3.0, "Let a least-squares scale fit replace the windows' median "
+                                                    "only when the two agree within this many combined σ: a drift "
+                                                    "inside the window can bend the odometry's shape so that the "
+                                                    "similarity fit absorbs it as scale; 0: always use the fit.",
+                                                    min=0.0, source="issue 6 (rain: fits 3-5% off where the median "
+                                                    "was within 0.1%); by measurement")
     refine_scale: bool = param(True, "Keep refining the scale while GPS fixes arrive after initialisation.",
                                source="issue 6 (a 30 s window overestimated the scale by 6%)")
     update_every: int = param(5, "Frames between two smoother updates; the online estimate composes odometry "

@@ -147,6 +147,7 @@ class MapFusion:
         self.scale: float | None = None
         self.scale_sigma: float | None = None
         self.scale_windows: float | None = None  # the paper's median-of-windows estimate at initialisation
+        self._windows_sigma = math.inf
         self._n_init_samples = 0
         self._fixes_since_fit = 0
         self._rot = 0.0  # odometry frame → ENU yaw offset
@@ -279,6 +280,7 @@ class MapFusion:
         trans = np.median(resid, axis=0)
         self.scale, self.scale_sigma = s, est.sigma
         self.scale_windows = s
+        self._windows_sigma = est.sigma
         self._n_init_samples = est.samples
         self._rot, self._trans = rot, trans
         self.initialised = True
@@ -310,6 +312,12 @@ class MapFusion:
         if spread * sc < 50.0:
             return None
         sigma = float(np.median(g[keep, 3])) / (spread * math.sqrt(keep.sum()))
+        limit = self.cfg.scale_fit_max_disagreement_sigma
+        if limit > 0 and self.scale_windows is not None and self.scale_sigma is not None:
+            if abs(sc - self.scale_windows) > limit * math.hypot(sigma, self._windows_sigma):
+                log.info("scale fit %.4f ± %.4f disagrees with the windows' median %.4f ± %.4f: kept the median",
+                         sc, sigma, self.scale_windows, self._windows_sigma)
+                return None
         return float(sc), sigma, math.atan2(r[1, 0], r[0, 0]), tr
 
     def _refine_scale_ls(self) -> None:
