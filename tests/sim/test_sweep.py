@@ -134,21 +134,3 @@ def test_a_failing_grid_point_costs_only_itself(tmp_path, monkeypatch):
     assert rows[2.0]["error"] == "IndexError: boom at 2 m" and "traceback" in rows[2.0]
     assert "error" not in rows[3.0] and rows[3.0]["ate_mapfusion_m"] > 0
 
-
-def test_isam2_with_cholesky_survives_a_failed_update():
-    """The tunnel run that made ISAM2's Cholesky fail: the engine re-anchors and asks no marginal of
-    a key the new Bayes tree does not hold (it raised IndexError before)."""
-    from pathlib import Path
-
-    from mapfusion.config import Backend, Factorization
-    from sim.run import fuse_and_evaluate, simulate_scenario
-    from sim.scenario import load_family
-    from sim.sweep import with_params
-
-    fam = load_family(Path(__file__).parents[2] / "scenarios" / "families" / "rain-tunnel.toml")
-    sc = next(s for s in fam.scenarios if s.name == "rain-tunnel-tunnel-vo-s2")
-    simulation = simulate_scenario(sc)
-    cfg = with_params(sc.mapfusion, {"backend": Backend.isam2.value, "factorization": Factorization.cholesky.value})
-    m, base, mf = fuse_and_evaluate(simulation, cfg)
-    assert "error" not in m
-    assert base.engine.counters.recoveries + mf.engine.counters.recoveries > 0  # the failure did happen
