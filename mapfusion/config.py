@@ -244,8 +244,9 @@ class FusionConfig:
                                         source="DESIGN item 7")
     robust_k: float = param(1.345, "Threshold of the robust kernel, in σ (whitened units).", min=0.0, exclusive_min=True,
                             source="Huber's 95%-efficiency constant")
-    match_continuity: bool = param(True, "Prefer the current road and the roads the graph joins to it.",
-                                   source="DESIGN item 7")
+    match_continuity: bool = param(False, "Prefer the current road and the roads the graph joins to it.",
+                                   source="DESIGN item 7; off by measurement (issue 6: once the estimate is on a "
+                                   "wrong road, continuity keeps it there)")
     prior_max_angle_deg: float = param(30.0, "No map prior from a match whose angle A exceeds this: a road heading "
                                        "that far from the vehicle's is the crossing road at a junction.", unit="deg",
                                        min=0.0, max=180.0, source="DESIGN item 7 (wrong-road priors at turns); by measurement")
