@@ -652,7 +652,7 @@ class MapFusion:
         self._rejected_run = [r for r in self._rejected_run if t - r[0] <= 60.0] + [(t, x, y, k)]
         if len(self._rejected_run) >= self.cfg.relocalise_after_fixes and self._run_consistent(sigma):
             self.counters.gps_relocalisations += 1
-            log.warning("t=%.1f s: %d consistent GPS fixes disagree with the estimate: re-localising on GPS",
+            log.info("t=%.1f s: %d consistent GPS fixes disagree with the estimate: re-localising on GPS",
                         t, len(self._rejected_run))
             self._relocalise(sigma)
 
