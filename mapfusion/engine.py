@@ -653,7 +653,7 @@ class MapFusion:
         if len(self._rejected_run) >= self.cfg.relocalise_after_fixes and self._run_consistent(sigma):
             self.counters.gps_relocalisations += 1
             log.info("t=%.1f s: %d consistent GPS fixes disagree with the estimate: re-localising on GPS",
-                        t, len(self._rejected_run))
+                     t, len(self._rejected_run))
             self._relocalise(sigma)
 
     def _relocalise(self, sigma: float) -> None:
