@@ -313,7 +313,7 @@ class MapFusion:
             return None
         sigma = float(np.median(g[keep, 3])) / (spread * math.sqrt(keep.sum()))
         limit = self.cfg.scale_fit_max_disagreement_sigma
-        if limit > 0 and self.scale_windows is not None and self.scale_sigma is not None:
+        if limit > 0 and self.scale_windows is not None:
             if abs(sc - self.scale_windows) > limit * math.hypot(sigma, self._windows_sigma):
                 log.info("scale fit %.4f ± %.4f disagrees with the windows' median %.4f ± %.4f: kept the median",
                          sc, sigma, self.scale_windows, self._windows_sigma)

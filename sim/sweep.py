@@ -72,7 +72,7 @@ def parse_grid(specs: list[str]) -> dict[str, list]:
 
 
 #: Named configurations every sweep knows: the engine's defaults and the paper's section III read directly.
-BUILTIN_VARIANTS = ("defaults", "faithful")
+BUILTIN_VARIANTS: dict[str, Callable[[], FusionConfig]] = {"defaults": FusionConfig, "faithful": FusionConfig.faithful}
 
 
 def variant_params(cfg: FusionConfig) -> dict:
@@ -91,12 +91,9 @@ def parse_variants(specs: list[str]) -> dict[str, dict]:
     for spec in specs:
         name, sep, path = (x.strip() for x in spec.partition("="))
         if not sep:
-            if name == "defaults":
-                params = {}
-            elif name == "faithful":
-                params = variant_params(FusionConfig.faithful())
-            else:
+            if name not in BUILTIN_VARIANTS:
                 raise InputError(f"--variant {spec!r}: expected {' or '.join(BUILTIN_VARIANTS)}, or NAME=FILE.toml")
+            params = variant_params(BUILTIN_VARIANTS[name]())
         else:
             if not name or not path:
                 raise InputError(f"--variant {spec!r}: expected NAME=FILE.toml")
@@ -116,11 +113,11 @@ def parse_variants(specs: list[str]) -> dict[str, dict]:
     return out
 
 
-def point_params(point: dict, variants: dict[str, dict] | None) -> dict:
+def point_params(point: dict, variants: dict[str, dict]) -> dict:
     """A grid point's engine overrides: its variant's (if any), then its own parameters."""
     rest = {k: v for k, v in point.items() if k != "variant"}
     if "variant" in point:
-        return {**(variants or {})[point["variant"]], **rest}
+        return {**variants[point["variant"]], **rest}
     return rest
 
 
@@ -132,10 +129,6 @@ def grid_points(grid: dict[str, list]) -> list[dict]:
 def row_key(row: dict) -> str:
     """A sweep row's identity: scenario and grid point."""
     return f"{row['scenario']}|{json.dumps(row.get('params', {}), sort_keys=True)}"
-
-
-def _config_key(cfg: FusionConfig) -> str:
-    return json.dumps(to_mapping(cfg), sort_keys=True)
 
 
 #: Fields the baseline (map priors off) never reads: changing them leaves it as it is.
@@ -150,13 +143,22 @@ def _baseline_key(cfg: FusionConfig) -> str:
     return json.dumps({k: v for k, v in m.items() if k not in MAP_ONLY_FIELDS}, sort_keys=True)
 
 
-def sweep_task(job: tuple) -> list[dict]:
-    """One scenario simulated once, then fused at every grid point (a task of ``run_tasks``).
-    ``job`` is (scenario, points) or (scenario, points, variants) when points name variants."""
-    from .run import fuse_and_evaluate, simulate_scenario
+def _fuse_reusing_baseline(sim, cfg: FusionConfig, baselines: dict) -> dict:
+    """``fuse_and_evaluate`` on one simulation, reusing the baseline already fused for what it
+    reads (``baselines``: that simulation's cache, filled here); the metrics."""
+    from .run import fuse_and_evaluate
 
-    sc, points = job[0], job[1]
-    variants = job[2] if len(job) > 2 else None
+    key = _baseline_key(cfg)  # odometry priors read lane width and yaw σ
+    m, baselines[key], _ = fuse_and_evaluate(sim, cfg, baselines.get(key))
+    return m
+
+
+def sweep_task(job: tuple[Scenario, list[dict], dict[str, dict]]) -> list[dict]:
+    """One scenario simulated once, then fused at every grid point (a task of ``run_tasks``);
+    ``job`` is (scenario, points, the variants the points may name)."""
+    from .run import simulate_scenario
+
+    sc, points, variants = job
     try:
         sim = simulate_scenario(sc)
     except InputError as exc:
@@ -164,10 +166,7 @@ def sweep_task(job: tuple) -> list[dict]:
     rows, baselines = [], {}
     for i, params in enumerate(points):
         try:
-            cfg = with_params(sc.mapfusion, point_params(params, variants))
-            key = _baseline_key(cfg)  # odometry priors read lane width and yaw σ
-            m, base, _ = fuse_and_evaluate(sim, cfg, baselines.get(key))
-            baselines[key] = base
+            m = _fuse_reusing_baseline(sim, with_params(sc.mapfusion, point_params(params, variants)), baselines)
         except Exception as exc:  # noqa: BLE001 - one failed grid point must not cost the others
             log.warning("%s at %s failed: %r", sc.name, params, exc)
             m = {"scenario": sc.name, "seed": sc.seed, "error": f"{type(exc).__name__}: {exc}",
@@ -262,7 +261,7 @@ def tune(scenarios: list[Scenario], trials: int, storage: str, study_name: str,
     several processes can share it."""
     import optuna
 
-    from .run import fuse_and_evaluate, simulate_scenario
+    from .run import simulate_scenario
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     ranges = ranges or TUNE_RANGES
@@ -282,17 +281,13 @@ def tune(scenarios: list[Scenario], trials: int, storage: str, study_name: str,
         for s in starts or []:
             study.enqueue_trial(s, user_attrs={"start": "given"})
 
-    baselines: dict[tuple[int, str], object] = {}  # a baseline reads only some fields: fused once per its config
+    baselines: list[dict] = [{} for _ in sims]  # per simulation: a baseline is fused once per what it reads
 
     def objective(trial) -> float:
         params = {k: trial.suggest_float(k, lo, hi) for k, (lo, hi) in ranges.items()}
         rows = []
-        for i, sim in enumerate(sims):
-            cfg = with_params(sim.sc.mapfusion, params)
-            key = (i, _baseline_key(cfg))
-            m, base, _ = fuse_and_evaluate(sim, cfg, baselines.get(key))
-            baselines[key] = base
-            rows.append(m)
+        for sim, cache in zip(sims, baselines):
+            rows.append(_fuse_reusing_baseline(sim, with_params(sim.sc.mapfusion, params), cache))
         value, mean, deloc = objective_value(rows, penalty_m)
         trial.set_user_attr("mean_ate_m", mean)
         trial.set_user_attr("delocalized", deloc)
