@@ -20,11 +20,21 @@ from typing import Any
 from .errors import ConfigError
 
 
-def param(default: Any, doc: str, *, unit: str = "", min: float | None = None, max: float | None = None,
-          exclusive_min: bool = False, source: str = "") -> Any:
+def param(
+    default: Any,
+    doc: str,
+    *,
+    unit: str = "",
+    min: float | None = None,
+    max: float | None = None,
+    exclusive_min: bool = False,
+    source: str = "",
+) -> Any:
     """A dataclass field with documentation, unit, range and source."""
-    return field(default=default, metadata={"doc": doc, "unit": unit, "min": min, "max": max,
-                                            "exclusive_min": exclusive_min, "source": source})
+    return field(
+        default=default,
+        metadata={"doc": doc, "unit": unit, "min": min, "max": max, "exclusive_min": exclusive_min, "source": source},
+    )
 
 
 def _type_name(tp) -> str:
@@ -66,13 +76,13 @@ def _convert(value: Any, tp: Any, key: str, where: str) -> Any:
     if origin is tuple:
         if not isinstance(value, (list, tuple)):
             raise ConfigError(f"{where}: {key} must be a list, got {value!r}")
-        args = typing.get_args(tp)
-        item_tp = args[0] if args else Any
+        targs = typing.get_args(tp)
+        item_tp = targs[0] if targs else Any
         return tuple(_convert(v, item_tp, f"{key}[{i}]", where) for i, v in enumerate(value))
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ConfigError(f"{where}: [{key}] must be a table, got {value!r}")
-        return from_mapping(tp, value, where, prefix=f"{key}.")
+        return from_mapping(typing.cast(type, tp), value, where, prefix=f"{key}.")
     if tp is Any:
         return value
     raise ConfigError(f"{where}: {key}: unsupported type {_type_name(tp)}")
@@ -149,7 +159,9 @@ def describe(cls: type) -> list[tuple[str, str, Any, str, str]]:
     rows = []
     for f in dataclasses.fields(cls):
         default = f.default if f.default is not dataclasses.MISSING else None
-        rows.append((f.name, _type_name(hints[f.name]), _plain(default), f.metadata.get("unit", ""), f.metadata.get("doc", "")))
+        rows.append(
+            (f.name, _type_name(hints[f.name]), _plain(default), f.metadata.get("unit", ""), f.metadata.get("doc", ""))
+        )
     return rows
 
 
@@ -201,96 +213,436 @@ class Factorization(str, enum.Enum):
 class FusionConfig:
     """Parameters of the Map-Fusion engine; the ``[mapfusion]`` table of a scenario file."""
 
-    lane_width_m: float = param(3.0, "Width of one lane; road width = lanes × lane width.", unit="m", min=0.5, max=10.0,
-                                source="paper III.B ('approximated to be 3m per lane')")
-    yaw_sigma_deg: float = param(10.0, "Standard deviation of the map prior's yaw.", unit="deg", min=0.1, max=180.0,
-                                 source="paper III.B ('empirically set as 10 degrees')")
-    angle_weight_m_per_deg: float = param(1.0, "Weight w of the angle in D = E + w·A.", unit="m/deg", min=0.0, max=100.0,
-                                          source="paper III.B ('each degree difference corresponds to 1m')")
-    search_radius_m: float = param(20.0, "Radius around the predicted pose searched for map way-points.", unit="m",
-                                   min=0.0, exclusive_min=True, max=500.0, source="paper IV.B ('within a 20m radius')")
-    scale_min_distance_m: float = param(100.0, "md: distance the GPS must cover before a scale sample is taken.",
-                                        unit="m", min=0.0, exclusive_min=True, source="paper III.C (md); value by measurement")
-    scale_min_speed_kmh: float = param(10.0, "ms: minimum average speed for a scale sample.", unit="km/h",
-                                       min=0.0, exclusive_min=True, source="paper III.C (ms); value by measurement")
-    scale_samples: int = param(50, "Scale samples whose median is the scale.", min=1, max=10000,
-                               source="paper III.C ('50 samples were sufficient')")
-    scale_formula: ScaleFormula = param(ScaleFormula.speed_ratio, "Scale estimator: speed_ratio or paper (the printed form).",
-                                        source="DESIGN item 4")
-    odometry_sigma_before_init_m: float = param(10.0, "Translation σ of an odometry step before scale initialisation.",
-                                                unit="m", min=0.0, exclusive_min=True, source="paper IV.B ('highly uncertain')")
-    odometry_sigma_after_init_m: float = param(0.05, "Translation σ of an odometry step after scale initialisation.",
-                                               unit="m", min=0.0, exclusive_min=True, source="paper IV.B; value by measurement")
-    odometry_rot_sigma_deg: float = param(0.5, "Rotation σ of an odometry step after initialisation.", unit="deg",
-                                          min=0.0, exclusive_min=True, source="value by measurement")
-    gps_sigma_m: float = param(2.0, "σ of a GPS position factor when the fix carries none.", unit="m",
-                               min=0.0, exclusive_min=True, source="paper IV.B ('set to a predefined value')")
-    gps_gate_sigma: float = param(5.0, "Mahalanobis gate: fixes farther than this many σ are rejected.",
-                                  min=0.0, exclusive_min=True, source="robustness (issue 6)")
-    backend: Backend = param(Backend.fixed_lag, "fixed_lag (bounded cost, default) or isam2 (whole history, as the paper).",
-                             source="DESIGN item 6")
-    lag_s: float = param(10.0, "Window of the fixed-lag smoother.", unit="s", min=0.0, exclusive_min=True,
-                         source="value by measurement")
-    delocalization_m: float = param(20.0, "ATE above which a run counts as de-localised.", unit="m",
-                                    min=0.0, exclusive_min=True, source="paper IV.B ('widest road observed')")
-    use_map: bool = param(True, "Add map priors; false gives the odometry baseline (same GPS use).", source="paper IV.B")
-    state: StateModel = param(StateModel.planar, "planar (level ground vehicle) or pose3 (the paper's free Pose3).",
-                              source="DESIGN item 7; chosen by measurement")
-    prior_mode: PriorMode = param(PriorMode.along_free, "paper (σ along the road from |v_lon|) or along_free.",
-                                  source="DESIGN items 3 and 7; chosen by measurement")
-    prior_lambda_floor_m2: float = param(0.25, "Floor of the prior's eigenvalues λ1, λ2 (variances), so Σ is never singular.",
-                                         unit="m²", min=0.0, exclusive_min=True, source="DESIGN item 3")
-    robust_kernel: RobustKernel = param(RobustKernel.huber, "none | huber | cauchy on the map prior.",
-                                        source="DESIGN item 7")
-    robust_k: float = param(1.345, "Threshold of the robust kernel, in σ (whitened units).", min=0.0, exclusive_min=True,
-                            source="Huber's 95%-efficiency constant")
-    match_continuity: bool = param(False, "Prefer the current road and the roads the graph joins to it.",
-                                   source="DESIGN item 7; off by measurement (issue 6: once the estimate is on a "
-                                   "wrong road, continuity keeps it there)")
-    prior_max_angle_deg: float = param(30.0, "No map prior from a match whose angle A exceeds this: a road heading "
-                                       "that far from the vehicle's is the crossing road at a junction.", unit="deg",
-                                       min=0.0, max=180.0, source="DESIGN item 7 (wrong-road priors at turns); by measurement")
-    prior_ambiguity_m: float = param(3.0, "No map prior when another way's best D is within this of the match's: "
-                                     "at junctions and beside parallel roads the match is a coin toss.", unit="m", min=0.0,
-                                     source="DESIGN item 7; by measurement")
-    prior_gate_sigma: float = param(0.0, "Reject a map prior whose lateral correction exceeds this many σ of the "
-                                    "estimate's positional uncertainty combined with half the road width (a lost "
-                                    "estimate snapping onto a neighbouring road); 0: no gate.", min=0.0,
-                                    source="issue 6 (wrong-road lock-in); by measurement")
-    prior_on_joins: bool = param(False, "Allow map priors from way-points on the rounded joins inside junctions.",
-                                 source="DESIGN item 7; by measurement")
-    continuity_slack_m: float = param(5.0, "An unrestricted match wins over the continuity match only when "
-                                      "its D is lower by more than this.", unit="m", min=0.0)
-    odometry_priors: bool = param(True, "Add the odometry estimate as a prior when the marginal positional σ "
-                                  "exceeds the road width.", source="paper IV.B")
-    relocalise_after_fixes: int = param(3, "Consecutive gated fixes that agree with each other and with the "
-                                        "odometry's distances before the estimate is re-initialised from GPS.", min=2,
-                                        max=100, source="robustness (issue 6); by measurement")
-    odometry_prior_every_s: float = param(1.0, "How often the marginal σ is checked for odometry priors.", unit="s",
-                                          min=0.0, exclusive_min=True)
-    loose_before_init: bool = param(False, "Frames before initialisation enter with odometry_sigma_before_init_m "
-                                    "(the paper, for frames whose scale is unknown); false: with the post-initialisation "
-                                    "σ inflated by the scale's uncertainty, since the batch is solved once the scale is known.",
-                                    source="paper IV.B; by measurement")
-    scale_fit_max_disagreement_sigma: float = param(3.0, "Let a least-squares scale fit replace the windows' median "
-                                                    "only when the two agree within this many combined σ: a drift "
-                                                    "inside the window can bend the odometry's shape so that the "
-                                                    "similarity fit absorbs it as scale; 0: always use the fit.",
-                                                    min=0.0, source="issue 6 (rain: fits 3-5% off where the median "
-                                                    "was within 0.1%); by measurement")
-    refine_scale: bool = param(True, "Keep refining the scale while GPS fixes arrive after initialisation.",
-                               source="issue 6 (a 30 s window overestimated the scale by 6%)")
-    update_every: int = param(5, "Frames between two smoother updates; the online estimate composes odometry "
-                              "on the last update in between.", min=1, max=1000, source="speed (mapfusion bench)")
+    lane_width_m: float = param(
+        3.0,
+        "Width of one lane; road width = lanes × lane width.",
+        unit="m",
+        min=0.5,
+        max=10.0,
+        source="paper III.B ('approximated to be 3m per lane')",
+    )
+    yaw_sigma_deg: float = param(
+        10.0,
+        "Standard deviation of the map prior's yaw.",
+        unit="deg",
+        min=0.1,
+        max=180.0,
+        source="paper III.B ('empirically set as 10 degrees')",
+    )
+    angle_weight_m_per_deg: float = param(
+        1.0,
+        "Weight w of the angle in D = E + w·A.",
+        unit="m/deg",
+        min=0.0,
+        max=100.0,
+        source="paper III.B ('each degree difference corresponds to 1m')",
+    )
+    search_radius_m: float = param(
+        20.0,
+        "Radius around the predicted pose searched for map way-points.",
+        unit="m",
+        min=0.0,
+        exclusive_min=True,
+        max=500.0,
+        source="paper IV.B ('within a 20m radius')",
+    )
+    scale_min_distance_m: float = param(
+        100.0,
+        "md: distance the GPS must cover before a scale sample is taken.",
+        unit="m",
+        min=0.0,
+        exclusive_min=True,
+        source="paper III.C (md); value by measurement",
+    )
+    scale_min_speed_kmh: float = param(
+        10.0,
+        "ms: minimum average speed for a scale sample.",
+        unit="km/h",
+        min=0.0,
+        exclusive_min=True,
+        source="paper III.C (ms); value by measurement",
+    )
+    scale_samples: int = param(
+        50,
+        "Scale samples whose median is the scale.",
+        min=1,
+        max=10000,
+        source="paper III.C ('50 samples were sufficient')",
+    )
+    scale_formula: ScaleFormula = param(
+        ScaleFormula.speed_ratio, "Scale estimator: speed_ratio or paper (the printed form).", source="DESIGN item 4"
+    )
+    odometry_sigma_before_init_m: float = param(
+        10.0,
+        "Translation σ of an odometry step before scale initialisation.",
+        unit="m",
+        min=0.0,
+        exclusive_min=True,
+        source="paper IV.B ('highly uncertain')",
+    )
+    odometry_sigma_after_init_m: float = param(
+        0.05,
+        "Translation σ of an odometry step after scale initialisation.",
+        unit="m",
+        min=0.0,
+        exclusive_min=True,
+        source="paper IV.B; value by measurement",
+    )
+    odometry_rot_sigma_deg: float = param(
+        0.5,
+        "Rotation σ of an odometry step after initialisation.",
+        unit="deg",
+        min=0.0,
+        exclusive_min=True,
+        source="value by measurement",
+    )
+    gps_sigma_m: float = param(
+        2.0,
+        "σ of a GPS position factor when the fix carries none.",
+        unit="m",
+        min=0.0,
+        exclusive_min=True,
+        source="paper IV.B ('set to a predefined value')",
+    )
+    gps_gate_sigma: float = param(
+        5.0,
+        "Mahalanobis gate: fixes farther than this many σ are rejected.",
+        min=0.0,
+        exclusive_min=True,
+        source="robustness (issue 6)",
+    )
+    backend: Backend = param(
+        Backend.fixed_lag,
+        "fixed_lag (bounded cost, default) or isam2 (whole history, as the paper).",
+        source="DESIGN item 6",
+    )
+    lag_s: float = param(
+        10.0, "Window of the fixed-lag smoother.", unit="s", min=0.0, exclusive_min=True, source="value by measurement"
+    )
+    delocalization_m: float = param(
+        20.0,
+        "ATE above which a run counts as de-localised.",
+        unit="m",
+        min=0.0,
+        exclusive_min=True,
+        source="paper IV.B ('widest road observed')",
+    )
+    use_map: bool = param(
+        True, "Add map priors; false gives the odometry baseline (same GPS use).", source="paper IV.B"
+    )
+    state: StateModel = param(
+        StateModel.planar,
+        "planar (level ground vehicle) or pose3 (the paper's free Pose3).",
+        source="DESIGN item 7; chosen by measurement",
+    )
+    prior_mode: PriorMode = param(
+        PriorMode.along_free,
+        "paper (σ along the road from |v_lon|) or along_free.",
+        source="DESIGN items 3 and 7; chosen by measurement",
+    )
+    prior_lambda_floor_m2: float = param(
+        0.25,
+        "Floor of the prior's eigenvalues λ1, λ2 (variances), so Σ is never singular.",
+        unit="m²",
+        min=0.0,
+        exclusive_min=True,
+        source="DESIGN item 3",
+    )
+    robust_kernel: RobustKernel = param(
+        RobustKernel.huber, "none | huber | cauchy on the map prior.", source="DESIGN item 7"
+    )
+    robust_k: float = param(
+        1.345,
+        "Threshold of the robust kernel, in σ (whitened units).",
+        min=0.0,
+        exclusive_min=True,
+        source="Huber's 95%-efficiency constant",
+    )
+    match_continuity: bool = param(
+        False,
+        "Prefer the current road and the roads the graph joins to it.",
+        source="DESIGN item 7; off by measurement (issue 6: once the estimate is on a "
+        "wrong road, continuity keeps it there)",
+    )
+    prior_max_angle_deg: float = param(
+        30.0,
+        "No map prior from a match whose angle A exceeds this: a road heading "
+        "that far from the vehicle's is the crossing road at a junction.",
+        unit="deg",
+        min=0.0,
+        max=180.0,
+        source="DESIGN item 7 (wrong-road priors at turns); by measurement",
+    )
+    prior_ambiguity_m: float = param(
+        3.0,
+        "No map prior when another way's best D is within this of the match's: "
+        "at junctions and beside parallel roads the match is a coin toss.",
+        unit="m",
+        min=0.0,
+        source="DESIGN item 7; by measurement",
+    )
+    prior_gate_sigma: float = param(
+        0.0,
+        "Reject a map prior whose lateral correction exceeds this many σ of the "
+        "estimate's positional uncertainty combined with half the road width (a lost "
+        "estimate snapping onto a neighbouring road); 0: no gate.",
+        min=0.0,
+        source="issue 6 (wrong-road lock-in); by measurement",
+    )
+    prior_on_joins: bool = param(
+        False,
+        "Allow map priors from way-points on the rounded joins inside junctions.",
+        source="DESIGN item 7; by measurement",
+    )
+    continuity_slack_m: float = param(
+        5.0,
+        "An unrestricted match wins over the continuity match only when its D is lower by more than this.",
+        unit="m",
+        min=0.0,
+    )
+    odometry_priors: bool = param(
+        True,
+        "Add the odometry estimate as a prior when the marginal positional σ exceeds the road width.",
+        source="paper IV.B",
+    )
+    relocalise_after_fixes: int = param(
+        3,
+        "Consecutive gated fixes that agree with each other and with the "
+        "odometry's distances before the estimate is re-initialised from GPS.",
+        min=2,
+        max=100,
+        source="robustness (issue 6); by measurement",
+    )
+    odometry_prior_every_s: float = param(
+        1.0, "How often the marginal σ is checked for odometry priors.", unit="s", min=0.0, exclusive_min=True
+    )
+    loose_before_init: bool = param(
+        False,
+        "Frames before initialisation enter with odometry_sigma_before_init_m "
+        "(the paper, for frames whose scale is unknown); false: with the post-initialisation "
+        "σ inflated by the scale's uncertainty, since the batch is solved once the scale is known.",
+        source="paper IV.B; by measurement",
+    )
+    scale_fit_max_disagreement_sigma: float = param(
+        3.0,
+        "Let a least-squares scale fit replace the windows' median "
+        "only when the two agree within this many combined σ: a drift "
+        "inside the window can bend the odometry's shape so that the "
+        "similarity fit absorbs it as scale; 0: always use the fit.",
+        min=0.0,
+        source="issue 6 (rain: fits 3-5% off where the median was within 0.1%); by measurement",
+    )
+    refine_scale: bool = param(
+        True,
+        "Keep refining the scale while GPS fixes arrive after initialisation.",
+        source="issue 6 (a 30 s window overestimated the scale by 6%)",
+    )
+    update_every: int = param(
+        5,
+        "Frames between two smoother updates; the online estimate composes odometry on the last update in between.",
+        min=1,
+        max=1000,
+        source="speed (mapfusion bench)",
+    )
     factorization: Factorization = param(Factorization.qr, "QR or CHOLESKY for ISAM2.", source="DESIGN item 7")
+    relinearize_threshold: float = param(
+        0.01,
+        "ISAM2's relinearisation threshold (tangent-space step).",
+        min=0.0,
+        exclusive_min=True,
+        source="GTSAM's examples",
+    )
+    # --- initialisation details (issue 15: every number the engine uses is a documented field)
+    init_min_fixes: int = param(
+        3,
+        "Fixes needed before the GPS initialisation may run.",
+        min=2,
+        max=1000,
+        source="a heading needs two displacements",
+    )
+    init_stall_s: float = param(
+        5.0,
+        "Initialise with fewer than scale_samples samples when no fix came for this "
+        "long (GPS ended before the window filled).",
+        unit="s",
+        min=0.0,
+        exclusive_min=True,
+        source="robustness (issue 6)",
+    )
+    init_stall_min_samples: int = param(
+        5, "Scale samples needed for such an early initialisation.", min=1, max=10000, source="robustness (issue 6)"
+    )
+    init_prior_yaw_sigma_deg: float = param(
+        10.0,
+        "Yaw σ of the prior on the first frame.",
+        unit="deg",
+        min=0.0,
+        exclusive_min=True,
+        max=180.0,
+        source="by measurement",
+    )
+    init_prior_sigma_m: float = param(
+        5.0, "x/y σ of the prior on the first frame.", unit="m", min=0.0, exclusive_min=True, source="by measurement"
+    )
+    init_prior_tilt_sigma_deg: float = param(
+        2.0,
+        "Roll/pitch σ of the first frame's prior (pose3 state).",
+        unit="deg",
+        min=0.0,
+        exclusive_min=True,
+        max=180.0,
+        source="by measurement",
+    )
+    init_prior_z_sigma_m: float = param(
+        1.0,
+        "z σ of the first frame's prior (pose3 state).",
+        unit="m",
+        min=0.0,
+        exclusive_min=True,
+        source="by measurement",
+    )
+    scale_outlier_sigma: float = param(
+        4.0,
+        "A fix enters the scale windows only within this many of its σ (plus "
+        "scale_outlier_floor_m) of its neighbours' midpoint.",
+        min=0.0,
+        exclusive_min=True,
+        source="multipath rejection (issue 6)",
+    )
+    scale_outlier_floor_m: float = param(
+        3.0,
+        "Added to that bound: a turn at city speed moves the midpoint by about 2.5 m at 1 Hz.",
+        unit="m",
+        min=0.0,
+        source="issue 6",
+    )
+    scale_fit_min_fixes: int = param(
+        10, "Fixes a least-squares scale fit needs.", min=3, max=100000, source="by measurement"
+    )
+    scale_fit_outlier_sigma: float = param(
+        3.0,
+        "The fit drops fixes farther than this many median σ (plus scale_fit_outlier_floor_m) from a first fit.",
+        min=0.0,
+        exclusive_min=True,
+        source="by measurement",
+    )
+    scale_fit_outlier_floor_m: float = param(
+        1.0, "Added to the fit's outlier bound.", unit="m", min=0.0, source="by measurement"
+    )
+    scale_fit_min_extent_m: float = param(
+        50.0,
+        "A fit needs the fixes to spread at least this far (RMS about their "
+        "mean); a shorter stretch says little about scale.",
+        unit="m",
+        min=0.0,
+        source="by measurement",
+    )
+    scale_refit_window_s: float = param(
+        300.0,
+        "Fixes of this many last seconds enter a refit after initialisation.",
+        unit="s",
+        min=0.0,
+        exclusive_min=True,
+        source="by measurement",
+    )
+    outage_s: float = param(
+        1.0,
+        "An odometry step spanning more than this is an outage: its σ is at least "
+        "outage_step_fraction of its length and outage_rot_sigma_deg.",
+        unit="s",
+        min=0.0,
+        exclusive_min=True,
+        source="a re-initialised VO guesses the motion it did not see",
+    )
+    outage_step_fraction: float = param(
+        0.3, "Translation σ of an outage step as a fraction of its length.", min=0.0, source="by measurement"
+    )
+    outage_rot_sigma_deg: float = param(
+        20.0, "Least rotation σ of an outage step.", unit="deg", min=0.0, max=180.0, source="by measurement"
+    )
+    gps_max_frame_gap_s: float = param(
+        1.0,
+        "A fix farther than this in time from every odometry frame is rejected.",
+        unit="s",
+        min=0.0,
+        exclusive_min=True,
+        source="robustness",
+    )
+    gps_gate_floor_m: float = param(
+        1.0,
+        "Added (in quadrature) to the gate's spread, so a confident estimate does not reject good fixes.",
+        unit="m",
+        min=0.0,
+        source="robustness (issue 6)",
+    )
+    relocalise_window_s: float = param(
+        60.0,
+        "Gated fixes older than this leave the run that can trigger a GPS re-localisation.",
+        unit="s",
+        min=0.0,
+        exclusive_min=True,
+        source="issue 6",
+    )
+    relocalise_min_baseline_m: float = param(
+        5.0,
+        "A re-localisation corrects the heading only when the run's GPS and the estimate each moved at least this far.",
+        unit="m",
+        min=0.0,
+        source="issue 6",
+    )
+    relocalise_yaw_sigma_floor_deg: float = param(
+        2.0,
+        "Added to the re-localised heading's σ (atan of 3σ over the run's length).",
+        unit="deg",
+        min=0.0,
+        max=180.0,
+        source="issue 6",
+    )
+    relocalise_distance_tolerance: float = param(
+        0.05,
+        "A run of fixes agrees with the odometry when their distances "
+        "differ by less than the gate plus this fraction of the distance.",
+        min=0.0,
+        source="issue 6 (scale error and drift)",
+    )
+    reanchor_yaw_sigma_deg: float = param(
+        2.0,
+        "Yaw σ of the prior that re-anchors a fresh smoother after GTSAM failed.",
+        unit="deg",
+        min=0.0,
+        exclusive_min=True,
+        max=180.0,
+        source="robustness",
+    )
+    reanchor_sigma_m: float = param(
+        0.5, "x/y σ of that prior.", unit="m", min=0.0, exclusive_min=True, source="robustness"
+    )
+    odometry_prior_rot_sigma_deg: float = param(
+        10.0,
+        "Rotation σ of the odometry prior (paper IV.B); its x/y σ is the road width.",
+        unit="deg",
+        min=0.0,
+        exclusive_min=True,
+        max=180.0,
+        source="paper IV.B; was yaw_sigma_deg's value, now its own field (issue 15)",
+    )
 
     @classmethod
     def faithful(cls, **changes) -> FusionConfig:
         """A direct reading of the paper's section III: free Pose3, the Eq. 6 prior with |v_lon| along
         the road, no robust kernel, no matching continuity or angle gate, ISAM2 over the whole
         history, the scale fixed at initialisation. Kept for comparison (DESIGN item 7)."""
-        base = dict(state=StateModel.pose3, prior_mode=PriorMode.paper, robust_kernel=RobustKernel.none,
-                    match_continuity=False, prior_max_angle_deg=180.0, prior_ambiguity_m=0.0, prior_on_joins=True,
-                    backend=Backend.isam2, refine_scale=False, loose_before_init=True)
+        base = dict(
+            state=StateModel.pose3,
+            prior_mode=PriorMode.paper,
+            robust_kernel=RobustKernel.none,
+            match_continuity=False,
+            prior_max_angle_deg=180.0,
+            prior_ambiguity_m=0.0,
+            prior_on_joins=True,
+            backend=Backend.isam2,
+            refine_scale=False,
+            loose_before_init=True,
+        )
         base.update(changes)
-        return cls(**base)
+        return cls(**base)  # type: ignore[arg-type]

@@ -22,13 +22,24 @@ heading minus the odometry displacement's heading over the same times.
 from __future__ import annotations
 
 import bisect
+import logging
 import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from .config import FusionConfig, ScaleFormula
+import gtsam
+
+from . import factors
+from .config import FusionConfig, ScaleFormula, StateModel
+from .counters import Counters
+from .factors import X
+from .metrics import umeyama
+from .track import Alignment, Track
+
+log = logging.getLogger(__name__)
 
 
 def window_counts(cfg: FusionConfig, f_gps_hz: float, f_vo_hz: float) -> tuple[int, int]:
@@ -69,6 +80,11 @@ class ScaleEstimator:
         self._odo_t.append(float(t))
         self._odo_p.append(np.asarray(position_odo, dtype=float))
 
+    def replace_positions(self, positions: list[np.ndarray]) -> None:
+        """Replace the first ``len(positions)`` odometry positions (the frame was levelled)."""
+        for i, p in enumerate(positions):
+            self._odo_p[i] = p
+
     def _odo_at(self, t: float) -> tuple[np.ndarray, float, int] | None:
         """Odometry position at the frame nearest to t, that frame's time and index."""
         ts = self._odo_t
@@ -87,7 +103,7 @@ class ScaleEstimator:
             (t0, x0, y0, _), (t1, x1, y1, s1), (t2, x2, y2, _) = self._recent
             w = (t1 - t0) / (t2 - t0) if t2 > t0 else 0.5
             mx, my = x0 + w * (x2 - x0), y0 + w * (y2 - y0)
-            if math.hypot(x1 - mx, y1 - my) > 4.0 * s1 + 3.0:
+            if math.hypot(x1 - mx, y1 - my) > self.cfg.scale_outlier_sigma * s1 + self.cfg.scale_outlier_floor_m:
                 self.rejected += 1
                 self._recent.remove((t1, x1, y1, s1))
                 return None
@@ -153,3 +169,146 @@ def heading_offset(gps_xy: np.ndarray, odo_xy: np.ndarray, min_step_m: float = 1
     d = np.arctan2(g[ok, 1], g[ok, 0]) - np.arctan2(o[ok, 1], o[ok, 0])
     w = lg[ok]
     return float(math.atan2(np.sum(w * np.sin(d)), np.sum(w * np.cos(d))))
+
+
+Fix = tuple[float, float, float, float]  # (t, x, y, sigma), ENU metres
+
+
+class Initialiser:
+    """The GPS initialisation and the scale's later refits: from fixes and the raw odometry to an
+    :class:`~mapfusion.track.Alignment` of the odometry frame in the map frame.
+
+    The windows' median (:class:`ScaleEstimator`) gives the scale; the heading is
+    :func:`heading_offset`, the shift the median residual. A least-squares similarity fit over the
+    fixes may then refine it (:meth:`fit`), but only where it agrees with the median within
+    ``scale_fit_max_disagreement_sigma`` combined σ: drift inside the window can bend the
+    odometry so that the fit absorbs it as scale.
+    """
+
+    def __init__(self, cfg: FusionConfig, gps_rate_hz: float, odometry_rate_hz: float) -> None:
+        self.cfg = cfg
+        self.scale_estimator = ScaleEstimator(cfg, gps_rate_hz, odometry_rate_hz)
+        self.fixes: list[Fix] = []
+        self.windows: ScaleEstimate | None = None  # the windows' median at initialisation
+        self._fixes_since_fit = 0
+
+    def add_fix(self, t: float, x: float, y: float, sigma: float) -> None:
+        """A fix before initialisation."""
+        self.fixes.append((t, x, y, sigma))
+        self.scale_estimator.add_gps(t, x, y, sigma)
+
+    def try_align(self, track: Track) -> Alignment | None:
+        """The alignment once the windows have enough samples (or GPS stalled with a few), or None."""
+        cfg = self.cfg
+        est = self.scale_estimator.estimate()
+        if est is None or len(self.fixes) < cfg.init_min_fixes or not track.t:
+            return None
+        stalled = (track.t[-1] - self.fixes[-1][0] > cfg.init_stall_s) and est.samples >= cfg.init_stall_min_samples
+        if not (self.scale_estimator.ready or stalled):
+            return None
+        if cfg.state is StateModel.planar and track.level_rot is None:
+            angle = track.level_frame()  # with every frame of the initialisation window
+            if angle is not None and angle > 0.0:
+                self.scale_estimator.replace_positions([p.translation() for p in track.raw])
+                log.info("odometry frame levelled by %.2f°", math.degrees(angle))
+        g = np.array([(t, x, y) for t, x, y, _ in self.fixes])
+        g = g[g[:, 0] <= track.t[-1] + 1e-9]
+        g = g[g[:, 0] >= track.t[0] - 1e-9]
+        if len(g) < cfg.init_min_fixes:
+            return None
+        odo_xyz = np.array([track.raw_at(t).translation() for t in g[:, 0]])
+        rot = heading_offset(g[:, 1:3], odo_xyz[:, :2])
+        if rot is None:
+            return None
+        s = est.scale
+        c, sn = math.cos(rot), math.sin(rot)
+        rxy = odo_xyz[:, :2] @ np.array([[c, sn], [-sn, c]]) * s
+        trans = np.median(g[:, 1:3] - rxy, axis=0)
+        self.windows = est
+        log.info("initialised at t=%.1f s: scale %.4f ± %.4f from %d samples, heading offset %.2f°",
+                 track.t[-1], s, est.sigma, est.samples, math.degrees(rot))
+        return Alignment(s, est.sigma, rot, trans)
+
+    def fit(self, track: Track, since_t: float = -math.inf) -> Alignment | None:
+        """Least-squares similarity between the raw odometry and the fixes after ``since_t``
+        (outliers beyond the fit's bound of a first fit dropped), or None when there are too few
+        fixes, too little motion, or the fit disagrees with the windows' median."""
+        cfg = self.cfg
+        lo, hi = max(since_t, track.t[0] - 0.5), track.t[-1] + 0.5
+        g = np.array([f for f in self.fixes if lo <= f[0] <= hi]).reshape(-1, 4)
+        if len(g) < cfg.scale_fit_min_fixes:
+            return None
+        o = np.array([track.raw_at(t).translation()[:2] for t in g[:, 0]])
+        keep = np.ones(len(g), dtype=bool)
+        for _ in range(2):
+            r, tr, sc = umeyama(o[keep], g[keep, 1:3], with_scale=True)
+            resid = np.hypot(*(g[:, 1:3] - (sc * o @ r.T + tr)).T)
+            keep = resid <= cfg.scale_fit_outlier_sigma * np.median(g[:, 3]) + cfg.scale_fit_outlier_floor_m
+            if keep.sum() < cfg.scale_fit_min_fixes:
+                return None
+        spread = float(np.sqrt(np.mean(np.sum((o[keep] - o[keep].mean(0)) ** 2, axis=1))))
+        if spread * sc < cfg.scale_fit_min_extent_m:
+            return None
+        sigma = float(np.median(g[keep, 3])) / (spread * math.sqrt(keep.sum()))
+        limit = cfg.scale_fit_max_disagreement_sigma
+        w = self.windows
+        if limit > 0 and w is not None and abs(sc - w.scale) > limit * math.hypot(sigma, w.sigma):
+            log.info("scale fit %.4f ± %.4f disagrees with the windows' median %.4f ± %.4f: kept the median",
+                     sc, sigma, w.scale, w.sigma)
+            return None
+        return Alignment(float(sc), sigma, math.atan2(r[1, 0], r[0, 0]), tr)
+
+    def refit_with_fix(self, track: Track, t: float, x: float, y: float, sigma: float) -> Alignment | None:
+        """A fix after initialisation: every ``scale_samples`` fixes, a refit over the last
+        ``scale_refit_window_s`` (its scale and σ replace the current ones), else None."""
+        self.fixes.append((t, x, y, sigma))
+        self._fixes_since_fit += 1
+        if self._fixes_since_fit < self.cfg.scale_samples:
+            return None
+        self._fixes_since_fit = 0
+        return self.fit(track, t - self.cfg.scale_refit_window_s)
+
+
+@dataclass(frozen=True)
+class Batch:
+    """The frames buffered until initialisation, solved together."""
+
+    poses: list[gtsam.Pose3]
+    last_noise: gtsam.noiseModel.Base  # the last frame's marginal: the smoother's starting prior
+
+
+def solve_initial_batch(cfg: FusionConfig, track: Track, alignment: Alignment, fixes: list[Fix],
+                        between_for: Callable[[int], gtsam.NonlinearFactor], counters: Counters) -> Batch:
+    """The buffered frames as one graph, solved by Levenberg–Marquardt: a prior on the first,
+    odometry between them (``between_for``), the window's fixes gated against the initial guess."""
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    guesses = [track.to_map(raw, alignment) for raw in track.raw]
+    sig = factors.pose_sigmas(cfg.state, math.radians(cfg.init_prior_yaw_sigma_deg), cfg.init_prior_sigma_m,
+                              tilt_rad=math.radians(cfg.init_prior_tilt_sigma_deg), z_m=cfg.init_prior_z_sigma_m)
+    graph.add(factors.pose_prior(0, guesses[0], factors.diagonal(sig)))
+    values.insert(X(0), guesses[0])
+    for k in range(1, len(track)):
+        graph.add(between_for(k))
+        values.insert(X(k), guesses[k])
+    for t, x, y, sigma in fixes:
+        if t < track.t[0] - 0.5 or t > track.t[-1] + 0.5:
+            continue
+        g = guesses[track.frame_at(t)]
+        # the guess itself is uncertain by about twice a fix's σ (it was fitted on them)
+        if math.hypot(g.x() - x, g.y() - y) > cfg.gps_gate_sigma * math.hypot(sigma, 2.0 * sigma):
+            counters.gps_rejected_gate += 1
+            continue
+        graph.add(factors.gps_factor(cfg.state, track.frame_at(t), x, y, None, sigma))
+        counters.gps_used += 1
+    params = gtsam.LevenbergMarquardtParams()
+    params.setLinearSolverType("MULTIFRONTAL_QR" if cfg.factorization.value == "QR" else "MULTIFRONTAL_CHOLESKY")
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    last = len(track) - 1
+    noise: gtsam.noiseModel.Base
+    try:
+        cov = gtsam.Marginals(graph, result).marginalCovariance(X(last))
+        noise = gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T) + 1e-9 * np.eye(6))
+    except RuntimeError:
+        noise = factors.diagonal(sig)
+    return Batch([result.atPose3(X(k)) for k in range(len(track))], noise)

@@ -1,0 +1,28 @@
+"""What the engine did, counted: for ``metrics.json``, ``fusion_events.json`` and diagnostics."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class Counters:
+    """Event counts of one engine run."""
+
+    frames: int = 0
+    odometry_rejected: int = 0
+    gps_used: int = 0
+    gps_rejected_gate: int = 0
+    gps_rejected_invalid: int = 0
+    gps_before_init: int = 0
+    map_priors: int = 0
+    priors_gated: int = 0
+    matches: int = 0
+    match_fallbacks: int = 0
+    odometry_priors: int = 0
+    recoveries: int = 0
+    gps_relocalisations: int = 0
+    updates: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)

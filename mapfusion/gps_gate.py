@@ -1,0 +1,105 @@
+"""The GPS gate: which fixes the engine takes, and when a run of rejected fixes means the estimate
+is lost rather than the GPS (then the engine re-localises on GPS).
+
+A fix is taken when it lies within ``gps_gate_sigma`` of its combined spread (the fix's σ, the
+estimate's positional σ and a floor) from the frame's estimate. A run of rejected fixes that agree
+with each other — each one's distance from the run's first matches the odometry's over the same
+frames, within the gate and a fraction of the distance — means the estimate is lost: after
+``relocalise_after_fixes`` such fixes within ``relocalise_window_s`` the engine re-initialises
+from them.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import gtsam
+
+from .config import FusionConfig, StateModel
+from .track import Track, level
+
+
+class Verdict(enum.Enum):
+    """What to do with one fix."""
+
+    accept = "accept"
+    reject = "reject"
+    relocalise = "relocalise"
+
+
+@dataclass(frozen=True)
+class Relocalisation:
+    """Where a GPS re-localisation re-anchors the estimate: frame ``k``, its pose and yaw σ."""
+
+    k: int
+    pose: gtsam.Pose3
+    yaw_sigma_rad: float
+
+
+class GpsGate:
+    """Gates fixes against the estimate and keeps the run of rejected ones."""
+
+    def __init__(self, cfg: FusionConfig) -> None:
+        self.cfg = cfg
+        self.run: list[tuple[float, float, float, int]] = []  # consecutive gated fixes (t, x, y, frame)
+
+    def check(self, track: Track, k: int, x: float, y: float, sigma: float, pos_sigma: float) -> Verdict:
+        """The verdict on a fix at frame k (ENU metres, σ per axis)."""
+        cfg = self.cfg
+        pred = track.online[k] or track.online[-1]
+        assert pred is not None  # fixes are gated only after initialisation
+        spread = math.sqrt(sigma * sigma + pos_sigma * pos_sigma + cfg.gps_gate_floor_m**2)
+        if math.hypot(pred.x() - x, pred.y() - y) <= cfg.gps_gate_sigma * spread:
+            self.run.clear()
+            return Verdict.accept
+        t = track.t[k]
+        # the run is broken by any accepted fix; with GPS every 5 s, three fixes span 10 s
+        self.run = [r for r in self.run if t - r[0] <= cfg.relocalise_window_s] + [(t, x, y, k)]
+        if len(self.run) >= cfg.relocalise_after_fixes and self._consistent(track, sigma):
+            return Verdict.relocalise
+        return Verdict.reject
+
+    def _consistent(self, track: Track, sigma: float) -> bool:
+        """The run's fixes move as far as the odometry says, each from the first fix. Lengths, not
+        vectors: an estimate that is lost is often turned too (a bend in a tunnel)."""
+        _, x0, y0, k0 = self.run[0]
+        p0 = track.online[k0]
+        for _, x, y, k in self.run[1:]:
+            p = track.online[k]
+            if p is None or p0 is None:
+                return False
+            dg = math.hypot(x - x0, y - y0)
+            do = math.hypot(p.x() - p0.x(), p.y() - p0.y())
+            if (
+                abs(dg - do)
+                > self.cfg.gps_gate_sigma * math.sqrt(2.0) * sigma + self.cfg.relocalise_distance_tolerance * do
+            ):
+                return False
+        return True
+
+    def relocalisation(self, track: Track, sigma: float) -> Relocalisation:
+        """The anchor of a re-localisation from the current run (which it clears): the run's last
+        fix gives the position, the angle between the run's GPS displacement and the estimate's
+        own displacement corrects the heading."""
+        cfg = self.cfg
+        _, x0, y0, k0 = self.run[0]
+        _, xn, yn, kn = self.run[-1]
+        p0, pn = track.online[k0], track.online[kn]
+        assert p0 is not None and pn is not None  # a consistent run has estimates at both ends
+        dg = (xn - x0, yn - y0)
+        do = (pn.x() - p0.x(), pn.y() - p0.y())
+        length = math.hypot(*dg)
+        base = cfg.relocalise_min_baseline_m
+        delta = math.atan2(dg[1], dg[0]) - math.atan2(do[1], do[0]) if length > base and math.hypot(*do) > base else 0.0
+        yaw = pn.rotation().yaw() + delta
+        anchor = gtsam.Pose3(
+            gtsam.Rot3.Ypr(yaw, pn.rotation().pitch(), pn.rotation().roll()), gtsam.Point3(xn, yn, pn.z())
+        )
+        if cfg.state is StateModel.planar:
+            anchor = level(anchor)
+        # a 3σ error at either end of the run's chord, plus a floor
+        yaw_sigma = math.atan2(3.0 * sigma, max(length, 1.0)) + math.radians(cfg.relocalise_yaw_sigma_floor_deg)
+        self.run = []
+        return Relocalisation(kn, anchor, yaw_sigma)
