@@ -8,7 +8,7 @@ import json
 import sys
 
 from mapfusion import RoadMap
-from mapfusion.bench import bench_engine, big_city_map
+from mapfusion.harness.bench import bench_engine, big_city_map
 
 if __name__ == "__main__":
     b = bench_engine(RoadMap.from_osm(big_city_map()), duration_s=3600.0)

@@ -12,7 +12,7 @@ import json
 import sys
 
 from mapfusion import RoadMap
-from mapfusion.bench import bench_match, bench_roadmap, big_city_map
+from mapfusion.harness.bench import bench_match, bench_roadmap, big_city_map
 from mapfusion.maps import resolve_map
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 
-from sim.bench import bench_sim
+from mapfusion.harness.bench import bench_sim
 
 if __name__ == "__main__":
     for n, fleet in ((0, False), (200, False), (200, True)):

@@ -11,6 +11,7 @@ import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -148,12 +149,17 @@ class GpsFixes:
     def __len__(self) -> int:
         return len(self.t_s)
 
+    def until(self, t_end_s: float) -> GpsFixes:
+        """The fixes at or before ``t_end_s``."""
+        keep = self.t_s <= t_end_s
+        return GpsFixes(self.t_s[keep], self.lat_deg[keep], self.lon_deg[keep], self.alt_m[keep], self.sigma_m[keep])
+
 
 def write_gps_csv(path: str | Path, t_s, lat_deg, lon_deg, alt_m=None, sigma_m=None) -> Path:
     p = Path(path)
     n = len(t_s)
-    alt = [None] * n if alt_m is None else list(alt_m)
-    sig = [None] * n if sigma_m is None else list(sigma_m)
+    alt: list[Any] = [None] * n if alt_m is None else list(alt_m)
+    sig: list[Any] = [None] * n if sigma_m is None else list(sigma_m)
     with open(p, "w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
         w.writerow(GPS_HEADER)

@@ -101,8 +101,8 @@ def georeference(poses_cam: np.ndarray, gps_enu: np.ndarray, iterations: int = 1
     poses_cam, gps_enu, n = poses_cam[use], gps_enu[use], int(use.sum())
     t_cam = poses_cam[:, :3, 3]
     r_cam = poses_cam[:, :3, :3]
-    lever = np.zeros(3)
-    trans = np.zeros(3)
+    lever: np.ndarray = np.zeros(3)
+    trans: np.ndarray = np.zeros(3)
     rot = np.eye(3)
     scale = 1.0
     for _ in range(iterations):
@@ -112,8 +112,8 @@ def georeference(poses_cam: np.ndarray, gps_enu: np.ndarray, iterations: int = 1
         a = np.zeros((3 * n, 6))
         a[:, :3] = np.tile(np.eye(3), (n, 1))
         a[:, 3:] = scale * np.einsum("ij,njk->nik", rot, r_cam).reshape(3 * n, 3)
-        b = (gps_enu - scale * t_cam @ rot.T).reshape(3 * n)
-        sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+        rhs = (gps_enu - scale * t_cam @ rot.T).reshape(3 * n)
+        sol, *_ = np.linalg.lstsq(a, rhs, rcond=None)
         trans, lever = sol[:3], sol[3:]
     pred = scale * (t_cam + np.einsum("nij,j->ni", r_cam, lever)) @ rot.T + trans
     res = gps_enu - pred

@@ -46,7 +46,6 @@ class Match:
     edge: int
     is_join: bool
     lanes: int
-    width_m: float
     lateral_m: float
     signed_lateral_m: float
     longitudinal_m: float
@@ -155,7 +154,6 @@ def _make_match(road: RoadMap, i: int, rev: bool, x: float, y: float, e: float, 
         edge=int(road.edge[i]),
         is_join=bool(road.edge[i] < 0),
         lanes=lanes,
-        width_m=lanes * road.config.lane_width_m,
         lateral_m=abs(lat),
         signed_lateral_m=lat,
         longitudinal_m=lon,
@@ -240,6 +238,7 @@ def match_many(
         todo = todo[~exact]
     for i in todo:  # the rare pose with more than max(k_steps) way-points nearer than its best D
         m = match(road, float(x[i]), float(y[i]), float(yaw[i]), radius, angle_weight_m_per_deg)
+        assert m is not None  # a pose with way-points nearer than its best D has a match
         out["index"][i], out["reversed"][i] = m.index, m.reversed
         out["distance_m"][i], out["angle_deg"][i], out["cost"][i] = m.distance_m, m.angle_deg, m.cost
     found = out["index"] >= 0

@@ -29,7 +29,9 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False) -> tuple
     src = np.asarray(src, dtype=float)
     dst = np.asarray(dst, dtype=float)
     if src.shape != dst.shape or src.ndim != 2 or len(src) < 2:
-        raise MetricsError(f"umeyama: need two (N, d) arrays of equal shape with N ≥ 2, got {src.shape} and {dst.shape}")
+        raise MetricsError(
+            f"umeyama: need two (N, d) arrays of equal shape with N ≥ 2, got {src.shape} and {dst.shape}"
+        )
     mu_s, mu_d = src.mean(0), dst.mean(0)
     a, b = src - mu_s, dst - mu_d
     cov = b.T @ a / len(src)
@@ -145,8 +147,13 @@ def match_rate(true_way: np.ndarray, matched_way: np.ndarray, continuations: dic
     return float(np.mean(ok))
 
 
-def rpe_per_100m(truth_xy: np.ndarray, truth_yaw_rad: np.ndarray, estimate_xy: np.ndarray,
-                 estimate_yaw_rad: np.ndarray, segment_m: float = 100.0) -> float | None:
+def rpe_per_100m(
+    truth_xy: np.ndarray,
+    truth_yaw_rad: np.ndarray,
+    estimate_xy: np.ndarray,
+    estimate_yaw_rad: np.ndarray,
+    segment_m: float = 100.0,
+) -> float | None:
     """Relative position error over ``segment_m`` of driving (m): for every frame i and the frame j
     ``segment_m`` further along the true path, the difference between the true and the estimated
     displacement i → j, each expressed in its own frame at i; the RMS over all i (evo's RPE,

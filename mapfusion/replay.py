@@ -113,7 +113,7 @@ def fuse(road: RoadMap, t_odo: np.ndarray, poses: np.ndarray, gps: GpsFixes | No
     inv = np.linalg.inv(poses[:-1])
     for k in range(n):
         t = float(t_odo[k])
-        while gi < ng and gps.t_s[gi] <= t + 1e-9:
+        while gps is not None and gi < ng and gps.t_s[gi] <= t + 1e-9:
             alt = gps.alt_m[gi]
             eng.add_gps(float(gps.t_s[gi]), float(gps.lat_deg[gi]), float(gps.lon_deg[gi]),
                         None if not math.isfinite(alt) else float(alt), float(gps.sigma_m[gi]))
@@ -123,8 +123,8 @@ def fuse(road: RoadMap, t_odo: np.ndarray, poses: np.ndarray, gps: GpsFixes | No
         if progress is not None and k % 500 == 0:
             progress(k, n)
     eng.finish()
-    t, online = eng.online_estimates()
-    return FusionResult(t, online, eng.trajectory(), eng)
+    t_s, online = eng.online_estimates()
+    return FusionResult(t_s, online, eng.trajectory(), eng)
 
 
 def poses_to_arrays(poses: list) -> tuple[np.ndarray, np.ndarray]:

@@ -30,7 +30,7 @@ from .projection import LocalProjection
 log = logging.getLogger(__name__)
 
 #: Bumped whenever the processed arrays change meaning, so stale caches are never read.
-CACHE_FORMAT = 4
+CACHE_FORMAT = 5
 
 
 @dataclass(frozen=True)
@@ -42,8 +42,6 @@ class RoadMapConfig:
     smoothing_window_m: float = 5.0
     """Length of the rolling-average window. 5 m keeps every smoothed point within 1.2 m of the
     raw polyline (half a 3 m lane) while rounding OSM's sharp vertices."""
-    lane_width_m: float = 3.0
-    """Width of one lane; road width = lanes × lane width (paper III.B: "approximated to be 3m per lane")."""
     join_radius_m: float = 6.0
     """How far back from a junction the rounded join between two edges starts (and ends)."""
     join_min_turn_deg: float = 10.0
@@ -60,7 +58,7 @@ class RoadMapConfig:
     """ENU origin longitude; None centres the projection on the map's bounding box."""
 
     def __post_init__(self) -> None:
-        for name in ("spacing_m", "lane_width_m"):
+        for name in ("spacing_m",):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ConfigError(f"RoadMapConfig.{name} must be a positive number of metres, got {v!r}")
@@ -311,10 +309,10 @@ class RoadMap:
         """Lane count of every way-point's way (N,)."""
         return self.way_lanes[self.way_index]
 
-    @property
-    def width_m(self) -> np.ndarray:
-        """Road width at every way-point: lanes × lane width (N,)."""
-        return self.lanes * self.config.lane_width_m
+    def width_m(self, lane_width_m: float) -> np.ndarray:
+        """Road width at every way-point: lanes × ``lane_width_m`` (N,). The map stores lanes only;
+        the lane width is the engine's (``FusionConfig.lane_width_m``), applied at match time."""
+        return self.lanes * lane_width_m
 
     def way_flags(self, flag: str) -> np.ndarray:
         """Per-way-point boolean flag of its way: 'oneway', 'tunnel', 'bridge' or 'roundabout'."""
@@ -448,13 +446,12 @@ _ARRAY_NAMES = (
 )
 
 
-def _build_graph_and_points(osm_ways: list[OsmWay], xy_all: np.ndarray, cfg: RoadMapConfig) -> dict:
-    """Split ways at junctions, process each edge's polyline and round the joins."""
+def _split_at_junctions(osm_ways: list[OsmWay], xy_all: np.ndarray):
+    """Ways split into edges at every node shared with another way (or itself) and at their ends:
+    (vertex of each OSM node id, vertex positions, edges as (way index, u, v, polyline))."""
     node_ids_all = np.concatenate([w.node_ids for w in osm_ways])
     uniq, counts = np.unique(node_ids_all, return_counts=True)
     shared = set(uniq[counts >= 2].tolist())
-
-    # -- split ways into edges at every node shared with another way (or itself) and at ends
     vertex_of: dict[int, int] = {}
     vertex_xy: list[np.ndarray] = []
     edges_raw: list[tuple[int, int, int, np.ndarray]] = []  # (way_index, u, v, polyline)
@@ -474,20 +471,25 @@ def _build_graph_and_points(osm_ways: list[OsmWay], xy_all: np.ndarray, cfg: Roa
                 ends.append(vertex_of[nid])
             if b > a:
                 edges_raw.append((wi, ends[0], ends[1], pts[a : b + 1]))
+    return vertex_of, vertex_xy, edges_raw
 
-    b = _Build()
+
+def _build_graph_and_points(osm_ways: list[OsmWay], xy_all: np.ndarray, cfg: RoadMapConfig) -> dict:
+    """Split ways at junctions, process each edge's polyline and round the joins."""
+    vertex_of, vertex_xy, edges_raw = _split_at_junctions(osm_ways, xy_all)
+    build = _Build()
     edge_u, edge_v, edge_way, edge_len, edge_start, edge_end = [], [], [], [], [], []
     count = 0
     for e, (wi, u, v, poly) in enumerate(edges_raw):
         pts, s, yaw = process_polyline(poly, cfg.spacing_m, cfg.smoothing_window_m)
         if len(pts) < 2:  # a zero-length edge (duplicate nodes): no way-points, still an edge
             pts, s, yaw = poly[:1], np.zeros(1), np.zeros(1)
-        b.xy.append(pts)
-        b.yaw.append(yaw)
-        b.s.append(s)
-        b.way_index.append(np.full(len(pts), wi, dtype=np.int32))
-        b.edge.append(np.full(len(pts), e, dtype=np.int32))
-        b.join_vertex.append(np.full(len(pts), -1, dtype=np.int32))
+        build.xy.append(pts)
+        build.yaw.append(yaw)
+        build.s.append(s)
+        build.way_index.append(np.full(len(pts), wi, dtype=np.int32))
+        build.edge.append(np.full(len(pts), e, dtype=np.int32))
+        build.join_vertex.append(np.full(len(pts), -1, dtype=np.int32))
         edge_u.append(u)
         edge_v.append(v)
         edge_way.append(wi)
@@ -500,18 +502,18 @@ def _build_graph_and_points(osm_ways: list[OsmWay], xy_all: np.ndarray, cfg: Roa
     np.add.at(vertex_degree, np.asarray(edge_u, dtype=np.intp), 1)
     np.add.at(vertex_degree, np.asarray(edge_v, dtype=np.intp), 1)
 
-    _add_join_curves(b, edge_u, edge_v, edge_way, edge_start, edge_end, vertex_degree, cfg)
+    _add_join_curves(build, edge_u, edge_v, edge_way, edge_start, edge_end, vertex_degree, cfg)
 
     vertex_node = np.empty(len(vertex_xy), dtype=np.int64)
     for nid, vi in vertex_of.items():
         vertex_node[vi] = nid
     return {
-        "xy_m": np.concatenate(b.xy).astype(np.float64),
-        "yaw_rad": np.concatenate(b.yaw).astype(np.float64),
-        "s_m": np.concatenate(b.s).astype(np.float32),
-        "way_index": np.concatenate(b.way_index).astype(np.int32),
-        "edge": np.concatenate(b.edge).astype(np.int32),
-        "join_vertex": np.concatenate(b.join_vertex).astype(np.int32),
+        "xy_m": np.concatenate(build.xy).astype(np.float64),
+        "yaw_rad": np.concatenate(build.yaw).astype(np.float64),
+        "s_m": np.concatenate(build.s).astype(np.float32),
+        "way_index": np.concatenate(build.way_index).astype(np.int32),
+        "edge": np.concatenate(build.edge).astype(np.int32),
+        "join_vertex": np.concatenate(build.join_vertex).astype(np.int32),
         "vertex_xy_m": np.asarray(vertex_xy, dtype=np.float64).reshape(-1, 2),
         "vertex_node_id": vertex_node,
         "vertex_degree": vertex_degree,

@@ -8,6 +8,7 @@ The output is deterministic: the same kind and parameters give byte-identical fi
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
@@ -140,7 +141,9 @@ def grid(cols: int = 6, rows: int = 4, block_m: float = 150.0) -> OsmBuilder:
             name=f"Street {j + 1}",
             **({"oneway": "-1"} if (not main and j % 2 == 1) else {}),
         )
-    pts = sorted({(i * block_m, cross_v[i]) for i in range(cols + 1)} | {(cross_h[j], j * block_m) for j in range(rows + 1)})
+    pts = sorted(
+        {(i * block_m, cross_v[i]) for i in range(cols + 1)} | {(cross_h[j], j * block_m) for j in range(rows + 1)}
+    )
     b.way(pts, highway="primary", lanes=4, name="Diagonal Avenue", maxspeed=50)
     return b
 
@@ -168,7 +171,11 @@ def y_split() -> OsmBuilder:
     xs = (-600.0, -200.0, 100.0, 400.0, 800.0)  # the main road has a node at every split
     main = [pt for a, c in zip(xs[:-1], xs[1:]) for pt in _line((a, 0.0), (c, 0.0))[:-1]] + [(xs[-1], 0.0)]
     b.way(main, highway="trunk", lanes=2, name="Main Road", maxspeed=80)
-    branches = ((-200.0, -15.0, 500.0, "trunk_link", 1), (100.0, 25.0, 450.0, "primary", 2), (400.0, -30.0, 350.0, "secondary", 1))
+    branches = (
+        (-200.0, -15.0, 500.0, "trunk_link", 1),
+        (100.0, 25.0, 450.0, "primary", 2),
+        (400.0, -30.0, 350.0, "secondary", 1),
+    )
     for k, (x0, angle, length, hw, lanes) in enumerate(branches):
         a = math.radians(angle)
         end = (x0 + length * math.cos(a), length * math.sin(a))
@@ -214,9 +221,15 @@ def tunnel(tunnel_m: float = 700.0, bend_deg: float = 40.0, bend_radius_m: float
     d = (math.cos(bend), math.sin(bend))
     t2 = (end_arc[0] + straight * d[0], end_arc[1] + straight * d[1])
     exit_end = (t2[0] + 600.0 * d[0], t2[1] + 600.0 * d[1])
-    b.way(_line(*approach), highway="primary", lanes=2, name="Tunnel Road")
-    b.way(_line(t0, t1, 25.0) + arc[1:] + _line(end_arc, t2, 25.0)[1:], highway="primary", lanes=2,
-          name="Tunnel Road", tunnel="yes", layer=-1)
+    b.way(_line(approach[0], approach[1]), highway="primary", lanes=2, name="Tunnel Road")
+    b.way(
+        _line(t0, t1, 25.0) + arc[1:] + _line(end_arc, t2, 25.0)[1:],
+        highway="primary",
+        lanes=2,
+        name="Tunnel Road",
+        tunnel="yes",
+        layer=-1,
+    )
     b.way(_line(t2, exit_end), highway="primary", lanes=2, name="Tunnel Road")
     # a surface street over the tunnel, unconnected to it, with a bridge over a stream
     b.way(_line((150.0, -400.0), (150.0, -20.0)), highway="residential", lanes=1, name="Hill Street")
@@ -226,7 +239,9 @@ def tunnel(tunnel_m: float = 700.0, bend_deg: float = 40.0, bend_radius_m: float
     return b
 
 
-def city(width_km: float = 10.0, height_km: float = 15.0, block_m: float = 150.0, arterial_every: int = 5) -> OsmBuilder:
+def city(
+    width_km: float = 10.0, height_km: float = 15.0, block_m: float = 150.0, arterial_every: int = 5
+) -> OsmBuilder:
     """A large grid city for performance work (up to 10 km × 15 km): residential blocks with a
     secondary arterial every ``arterial_every`` blocks."""
     if not (0 < width_km <= 10.0 and 0 < height_km <= 15.0):
@@ -238,12 +253,20 @@ def city(width_km: float = 10.0, height_km: float = 15.0, block_m: float = 150.0
     ny = max(1, int(round(height_km * 1000 / block_m)))
     for i in range(nx + 1):
         art = i % arterial_every == 0
-        b.way([(i * block_m, j * block_m) for j in range(ny + 1)], highway="secondary" if art else "residential",
-              lanes=2 if art else 1, name=f"{i + 1} Avenue")
+        b.way(
+            [(i * block_m, j * block_m) for j in range(ny + 1)],
+            highway="secondary" if art else "residential",
+            lanes=2 if art else 1,
+            name=f"{i + 1} Avenue",
+        )
     for j in range(ny + 1):
         art = j % arterial_every == 0
-        b.way([(i * block_m, j * block_m) for i in range(nx + 1)], highway="secondary" if art else "residential",
-              lanes=2 if art else 1, name=f"{j + 1} Street")
+        b.way(
+            [(i * block_m, j * block_m) for i in range(nx + 1)],
+            highway="secondary" if art else "residential",
+            lanes=2 if art else 1,
+            name=f"{j + 1} Street",
+        )
     return b
 
 
@@ -262,8 +285,10 @@ def generate(kind: SyntheticKind | str, **params) -> str:
     try:
         k = SyntheticKind(kind)
     except ValueError as exc:
-        raise InputError(f"unknown synthetic map kind {kind!r} (known: {', '.join(x.value for x in SyntheticKind)})") from exc
-    return _GENERATORS[k](**params).to_xml()
+        raise InputError(
+            f"unknown synthetic map kind {kind!r} (known: {', '.join(x.value for x in SyntheticKind)})"
+        ) from exc
+    return _GENERATORS[k](**params).to_xml()  # type: ignore[operator]
 
 
 def write(kind: SyntheticKind | str, out: str | Path, **params) -> Path:
@@ -272,3 +297,25 @@ def write(kind: SyntheticKind | str, out: str | Path, **params) -> Path:
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(generate(kind, **params), encoding="utf-8")
     return p
+
+
+def parse_params(kind: SyntheticKind | str, pairs: list[str]) -> dict:
+    """``KEY=VALUE`` pairs → keyword arguments of ``kind``'s generator, converted to its
+    parameters' types (InputError naming the pair otherwise)."""
+    import inspect
+
+    func: Callable[..., OsmBuilder] = _GENERATORS[SyntheticKind(kind)]  # type: ignore[assignment]
+    sig = inspect.signature(func)
+    out = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise InputError(f"--param {pair!r}: expected KEY=VALUE")
+        key, value = (s.strip() for s in pair.split("=", 1))
+        if key not in sig.parameters:
+            raise InputError(f"--param {key!r}: {func.__name__} takes {', '.join(sig.parameters) or 'no parameters'}")
+        default = sig.parameters[key].default
+        try:
+            out[key] = type(default)(value) if default is not inspect.Parameter.empty else float(value)
+        except ValueError as exc:
+            raise InputError(f"--param {key}={value!r}: not a {type(default).__name__}") from exc
+    return out

@@ -25,7 +25,7 @@ def pytest_addoption(parser):
 def family_results(config, name: str) -> dict[str, dict]:
     """Metrics of every run of a family, computed once per session."""
     if name not in _RESULTS:
-        from sim.batch import run_many
+        from mapfusion.harness.batch import run_many
         from sim.scenario import load_family
 
         fam = load_family(FAMILIES / f"{name}.toml")
@@ -56,7 +56,7 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
 
     from rich.console import Console
 
-    from mapfusion.cli import _paper_table, _table_one
+    from mapfusion.harness.tables import family_summary_line, paper_table, table_one
 
     buf = StringIO()
     width = max(120, 15 * (2 + max(len(r) for r in _RESULTS.values())))
@@ -64,20 +64,10 @@ def pytest_terminal_summary(terminalreporter, exitstatus, config):
     for fam, runs in _RESULTS.items():
         rows = list(runs.values())
         if fam.startswith("kitti"):
-            con.print(_table_one(rows, f"family {fam}: Table I, ATE (m) per KITTI sequence "
-                                       "(synthetic odometry on the real drives, real OSM, RTK GPS for initialisation)"))
+            con.print(table_one(rows, f"family {fam}: Table I, ATE (m) per KITTI sequence "
+                                      "(synthetic odometry on the real drives, real OSM, RTK GPS for initialisation)"))
         else:
-            con.print(_paper_table(rows, f"family {fam}: ATE (m) per run", strip_prefix=f"{fam}-", width=con.width))
-        ok = [r for r in rows if "error" not in r]
-        if ok:
-            import numpy as np
-
-            mo = np.mean([r["ate_odometry_m"] for r in ok])
-            mm = np.mean([r["ate_mapfusion_m"] for r in ok])
-            rates = [r["match_rate"] for r in ok if r.get("match_rate") is not None]
-            con.print(f"  mean ATE over all runs: odometry {mo:.2f} m, + Map-Fusion {mm:.2f} m "
-                      f"(reduction {100 * (1 - mm / mo):.0f}%); de-localised {sum(r['delocalized_odometry'] for r in ok)} → "
-                      f"{sum(r['delocalized_mapfusion'] for r in ok)} of {len(ok)}; match rate "
-                      f"{100 * np.mean(rates):.1f}%" if rates else "")
+            con.print(paper_table(rows, f"family {fam}: ATE (m) per run", strip_prefix=f"{fam}-", width=con.width))
+        con.print(family_summary_line(rows))
     terminalreporter.write_sep("=", "scenario families")
     terminalreporter.write(buf.getvalue())

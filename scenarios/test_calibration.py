@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pytest
 
-from sim.calibration import calibration_runs, summarise
+from mapfusion.harness.calibration import calibration_runs, summarise
 
 pytestmark = pytest.mark.sumo
 

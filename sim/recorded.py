@@ -58,7 +58,7 @@ def recorded_truth(t_s: np.ndarray, xyz: np.ndarray, yaw_rad: np.ndarray, sc: Sc
     zone = np.zeros(len(t_s), dtype=bool)
     for z in sc.tunnels:
         zone |= (dist >= z.start_m) & (dist <= z.end_m)
-    bridge = under_bridges(road, xyz[:, 0], xyz[:, 1], np.full(len(t_s), -1))
+    bridge = under_bridges(road, xyz[:, 0], xyz[:, 1], np.full(len(t_s), -1), sc.gps.bridge_lane_width_m)
     denied = (zone if sc.gps.deny_in_tunnels else np.zeros_like(zone)) | (bridge if sc.gps.deny_under_bridges else False)
     return Truth(np.asarray(t_s, float), xyz[:, 0].copy(), xyz[:, 1].copy(), xyz[:, 2].copy(),
                  np.asarray(yaw_rad, float), denied, zone)

@@ -134,6 +134,10 @@ class GpsConfig:
     outlier_sigma_m: float = param(30.0, "σ of a multipath outlier's error (per axis).", unit="m", min=0.0)
     deny_in_tunnels: bool = param(True, "No fix on OSM tunnel=yes / covered roads, nor in the [[tunnels]] zones.")
     deny_under_bridges: bool = param(True, "No fix while passing under a bridge (another road above, layer > own).")
+    bridge_lane_width_m: float = param(3.0, "Lane width of the bridges' roads: a frame is under a bridge within half "
+                                       "its width (lanes × this) + 1 m.", unit="m", min=0.5, max=10.0,
+                                       source="paper III.B's 3 m lane; the sensor model's own (issue 15: it read the "
+                                       "engine's lane width)")
 
 
 @dataclass(frozen=True)

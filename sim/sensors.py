@@ -112,8 +112,9 @@ class Truth:
                    np.asarray(track.z_m, float), np.asarray(track.yaw_rad, float), denied, tunnel)
 
 
-def under_bridges(road, x_m: np.ndarray, y_m: np.ndarray, osm_way: np.ndarray) -> np.ndarray:
-    """Frames under a bridge: a bridge way of a higher layer passes within half its width + 1 m.
+def under_bridges(road, x_m: np.ndarray, y_m: np.ndarray, osm_way: np.ndarray, lane_width_m: float = 3.0) -> np.ndarray:
+    """Frames under a bridge: a bridge way of a higher layer passes within half its width
+    (lanes × ``lane_width_m``, the scenario's ``[gps] bridge_lane_width_m``) + 1 m.
 
     A frame's own way (and a bridge the vehicle is itself on) never counts.
     """
@@ -134,7 +135,7 @@ def under_bridges(road, x_m: np.ndarray, y_m: np.ndarray, osm_way: np.ndarray) -
         own_layer = road.way(own).layer if own >= 0 and road.has_way(own) else 0
         crow = road.way_index[cand]
         d = np.hypot(road.xy_m[cand, 0] - x, road.xy_m[cand, 1] - y)
-        ok = (layers[crow] > own_layer) & (road.way_ids[crow] != own) & (d <= 0.5 * road.width_m[cand] + 1.0)
+        ok = (layers[crow] > own_layer) & (road.way_ids[crow] != own) & (d <= 0.5 * road.lanes[cand] * lane_width_m + 1.0)
         out[i] = bool(ok.any())
     return out
 

@@ -6,6 +6,8 @@ the tests reason about are defined once.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import math
 from pathlib import Path
 
@@ -60,16 +62,40 @@ def write_osm(tmp_path: Path, roads: list[tuple[np.ndarray, dict]], name: str = 
     return p
 
 
+@dataclass
+class TruthTrack:
+    """A level ground-truth trajectory in a map's ENU frame (the fields of ``sim.sensors.Truth``)."""
+
+    t_s: np.ndarray
+    x_m: np.ndarray
+    y_m: np.ndarray
+    z_m: np.ndarray
+    yaw_rad: np.ndarray
+    gps_denied: np.ndarray
+    visually_degraded: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) level poses."""
+        n = len(self.t_s)
+        m = np.tile(np.eye(4), (n, 1, 1))
+        c, s = np.cos(self.yaw_rad), np.sin(self.yaw_rad)
+        m[:, 0, 0], m[:, 0, 1], m[:, 1, 0], m[:, 1, 1] = c, -s, s, c
+        m[:, 0, 3], m[:, 1, 3], m[:, 2, 3] = self.x_m, self.y_m, self.z_m
+        return m
+
+
 def synthetic_truth(kind: str = "straight", n: int = 600, dt_s: float = 0.1, speed_mps: float = 10.0,
                     radius_m: float = 100.0, seed: int = 0, denied: tuple[int, int] | None = None):
-    """A level ground-truth trajectory for the sensor models (``sim.sensors.Truth``).
+    """A level ground-truth trajectory (:class:`TruthTrack`, the fields of ``sim.sensors.Truth``, which
+    the sensor models read; the engine's tests use it without importing ``sim``).
 
     ``straight``: due east; ``circle``: counter-clockwise on ``radius_m``; ``random``: smooth
     random yaw rate and speed. ``denied`` = (first, last) frame of a GPS-denied, visually
     degraded zone.
     """
-    from sim.sensors import Truth
-
     t = np.arange(n) * dt_s
     if kind == "straight":
         yaw = np.zeros(n)
@@ -90,4 +116,4 @@ def synthetic_truth(kind: str = "straight", n: int = 600, dt_s: float = 0.1, spe
     flag = np.zeros(n, dtype=bool)
     if denied is not None:
         flag[denied[0]:denied[1] + 1] = True
-    return Truth(t, x, y, np.zeros(n), (yaw + np.pi) % (2 * np.pi) - np.pi, flag.copy(), flag.copy())
+    return TruthTrack(t, x, y, np.zeros(n), (yaw + np.pi) % (2 * np.pi) - np.pi, flag.copy(), flag.copy())

@@ -18,7 +18,7 @@ from multiprocessing.connection import wait
 from pathlib import Path
 from typing import Any
 
-from .scenario import Scenario
+from sim.scenario import Scenario
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +147,7 @@ def run_one(job: tuple[Scenario, str | None, bool]) -> dict:
     """One scenario end to end (a task of :func:`run_tasks`); bad input becomes a failed row."""
     from mapfusion.errors import InputError
 
-    from .run import run_scenario
+    from .pipeline import run_scenario
 
     sc, out_dir, plot = job
     try:

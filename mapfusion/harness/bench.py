@@ -12,7 +12,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .roadmap import RoadMap
+from mapfusion.maps import resolve_map
+from mapfusion.roadmap import RoadMap
+from sim.drive import run_drive
+from sim.network import build_network
+from sim.scenario import scenario_from_dict
 
 
 @dataclass(frozen=True)
@@ -92,7 +96,7 @@ def bench_match(road: RoadMap, n_poses: int = 50000, n_single: int = 5000, seed:
 
 def big_city_map(directory: Path | None = None) -> Path:
     """Generate the 10 km × 15 km synthetic city used for performance work."""
-    from . import synthetic
+    from mapfusion import synthetic
 
     d = Path(directory) if directory else Path(tempfile.mkdtemp(prefix="mapfusion-bench-"))
     return synthetic.write("city", d / "city-10x15km.osm", width_km=10.0, height_km=15.0)
@@ -148,9 +152,9 @@ def bench_engine(road: RoadMap, duration_s: float = 3600.0, speed_mps: float = 1
     along the map's roads: GPS for the first 120 s, odometry with a lateral drift so priors fire."""
     import gtsam
 
-    from .config import FusionConfig
-    from .engine import MapFusion
-    from .geometry import resample
+    from mapfusion.config import FusionConfig
+    from mapfusion.engine import MapFusion
+    from mapfusion.geometry import resample
 
     path = route_walk(road, duration_s * speed_mps + 100.0, seed)
     pts, _ = resample(path, speed_mps / rate_hz)
@@ -182,3 +186,98 @@ def bench_engine(road: RoadMap, duration_s: float = 3600.0, speed_mps: float = 1
     return EngineBench(map=road.source, frames=n, duration_s=float(t[-1]), map_priors=eng.counters.map_priors,
                        frames_per_s=float(n / times.sum()), first_10pct_us=float(run[:tenth].mean() * 1e6),
                        last_10pct_us=float(run[-tenth:].mean() * 1e6))
+
+@dataclass(frozen=True)
+class SimBench:
+    map: str
+    vehicles: int
+    fleet: bool
+    sim_s: float
+    wall_s: float
+    realtime_factor: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def bench_sim(background_vehicles: int, fleet: bool = False, duration_s: float = 600.0, seed: int = 1,
+              map_name: str = "helsinki") -> SimBench:
+    """One drive of ``duration_s`` with ``background_vehicles`` others (network build excluded)."""
+    path = resolve_map(map_name)
+    road = RoadMap.from_osm(path)
+    net = build_network(path)
+    sc = scenario_from_dict({"name": "bench", "map": str(path), "seed": seed, "duration_s": duration_s,
+                             "min_route_m": 100000.0, "route": {"max_trips": 200},
+                             "traffic": {"background_vehicles": background_vehicles, "fleet": fleet}}, "bench")
+    d = run_drive(sc, road, net)
+    return SimBench(map=str(path), vehicles=d.vehicles, fleet=fleet, sim_s=d.sim_s, wall_s=d.wall_s,
+                    realtime_factor=d.realtime_factor)
+
+
+def bench_bare_chain(road: RoadMap, duration_s: float = 3600.0, speed_mps: float = 10.0, rate_hz: float = 10.0,
+                     seed: int = 0) -> float:
+    """The anchor of the engine benchmark: frames per second of a bare GTSAM Pose3 chain on the same
+    drive (BetweenFactorPose3 per frame, a prior every 50 frames, IncrementalFixedLagSmoother with
+    a 10 s lag, QR, one update per frame) — what any GTSAM odometry fusion pays at least."""
+    import gtsam
+
+    from mapfusion.geometry import resample
+
+    path = route_walk(road, duration_s * speed_mps + 100.0, seed)
+    pts, _ = resample(path, speed_mps / rate_hz)
+    n = min(len(pts), int(duration_s * rate_hz))
+    yaw = np.arctan2(np.diff(pts[:n, 1]), np.diff(pts[:n, 0]))
+    yaw = np.concatenate([yaw, yaw[-1:]])
+    poses = [gtsam.Pose3(gtsam.Rot3.Yaw(float(yaw[k])), gtsam.Point3(float(pts[k, 0]), float(pts[k, 1]), 0.0))
+             for k in range(n)]
+    params = gtsam.ISAM2Params()
+    params.setFactorization("QR")
+    params.findUnusedFactorSlots = True
+    smoother = gtsam.IncrementalFixedLagSmoother(10.0, params)
+    odo = gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-3, 1e-3, 0.01, 0.05, 0.05, 1e-3]))
+    prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-3, 1e-3, 0.1, 2.0, 2.0, 1e-3]))
+    x = gtsam.symbol_shorthand.X
+    t0 = time.perf_counter()
+    for k in range(n):
+        g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if k % 50 == 0:
+            g.add(gtsam.PriorFactorPose3(x(k), poses[k], prior))
+        if k > 0:
+            g.add(gtsam.BetweenFactorPose3(x(k - 1), x(k), poses[k - 1].between(poses[k]), odo))
+        v.insert(x(k), poses[k])
+        smoother.update(g, v, {x(k): k / rate_hz})
+    return n / (time.perf_counter() - t0)
+
+
+def bench_kdtree(road: RoadMap, n_poses: int = 5000, radius_m: float = 20.0, seed: int = 0) -> float:
+    """The anchor of the matcher benchmark: single cKDTree ball queries per second near random way-points."""
+    rng = np.random.default_rng(seed)
+    i = rng.integers(0, len(road), n_poses)
+    xy = road.xy_m[i] + rng.normal(0.0, 3.0, (n_poses, 2))
+    t0 = time.perf_counter()
+    for p in xy:
+        road.tree.query_ball_point(p, radius_m)
+    return n_poses / (time.perf_counter() - t0)
+
+
+def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (10.0, 15.0)):
+    """``mapfusion bench``: one dict per benchmark (``benchmark`` names it), each with the anchor
+    measured in the same run and the ratio to it."""
+    from mapfusion import synthetic
+
+    d = Path(tempfile.mkdtemp(prefix="mapfusion-bench-"))
+    city = synthetic.write("city", d / "city.osm", width_km=city_km[0], height_km=city_km[1])
+    t0 = time.perf_counter()
+    road = RoadMap.from_osm(city, cache=False)
+    build_s = time.perf_counter() - t0
+    yield {"benchmark": "roadmap_build", "map": f"synthetic city {city_km[0]:g} × {city_km[1]:g} km",
+           "waypoints": len(road), "build_s": build_s}
+    eng = bench_engine(road, duration_s=duration_s)
+    bare = bench_bare_chain(road, duration_s=duration_s)
+    yield {"benchmark": "engine", "frames": eng.frames, "map_priors": eng.map_priors, "frames_per_s": eng.frames_per_s,
+           "growth": eng.growth, "bare_chain_frames_per_s": bare, "ratio_to_bare": eng.frames_per_s / bare}
+    m = bench_match(road)
+    kd = bench_kdtree(road)
+    yield {"benchmark": "matcher", "single_matches_per_s": m.single_matches_per_s,
+           "batch_matches_per_s": m.batch_matches_per_s, "kdtree_queries_per_s": kd,
+           "single_ratio_to_kdtree": m.single_matches_per_s / kd, "batch_ratio_to_kdtree": m.batch_matches_per_s / kd}

@@ -14,7 +14,7 @@ import numpy as np
 
 from mapfusion.metrics import ate, umeyama
 
-from .sensors import GpsOutput, OdometryOutput, Truth
+from sim.sensors import GpsOutput, OdometryOutput, Truth
 
 
 def gps_initialise(odo: OdometryOutput, gps: GpsOutput, init_window_s: float) -> np.ndarray:
@@ -48,7 +48,7 @@ def engine_baseline(truth: Truth, odo: OdometryOutput, gps: GpsOutput, road) -> 
     """The engine with map priors off (the paper's baseline): online positions (M, 3) and the
     truth frame of each (frames before initialisation are left out)."""
     from mapfusion.config import FusionConfig
-    from mapfusion.runner import fuse
+    from mapfusion.replay import fuse
     from mapfusion.formats import GpsFixes
 
     lat, lon = road.projection.to_geo(gps.x_m, gps.y_m)
@@ -101,10 +101,10 @@ def calibration_runs(maps=("helsinki", "kotka"), seeds=(1, 2, 3, 4), cases=CASES
     from mapfusion.maps import resolve_map
     from mapfusion.roadmap import RoadMap
 
-    from .drive import run_drive
-    from .network import build_network
-    from .scenario import OdometryConfig, OdometryKind, WeatherConfig, WeatherKind, scenario_from_dict
-    from .sensors import Truth, synthesise, under_bridges
+    from sim.drive import run_drive
+    from sim.network import build_network
+    from sim.scenario import OdometryConfig, OdometryKind, WeatherConfig, WeatherKind, scenario_from_dict
+    from sim.sensors import Truth, synthesise, under_bridges
 
     runs = []
     for name in maps:
@@ -119,7 +119,7 @@ def calibration_runs(maps=("helsinki", "kotka"), seeds=(1, 2, 3, 4), cases=CASES
                                              "tunnels": [] if zone is None else [{"start_m": zone[0], "end_m": zone[1]}]},
                                             "calibration")
                     d = run_drive(sc, road, net)
-                    bridges = under_bridges(road, d.ego.x_m, d.ego.y_m, d.ego.osm_way)
+                    bridges = under_bridges(road, d.ego.x_m, d.ego.y_m, d.ego.osm_way, sc.gps.bridge_lane_width_m)
                     drives[zone] = (sc, d, bridges)
                 sc, d, bridges = drives[zone]
                 sc = sc.replace(weather=WeatherConfig(kind=WeatherKind(weather)), odometry=OdometryConfig(kind=OdometryKind(kind)))
@@ -149,7 +149,7 @@ def summarise(runs: list[CalibrationRun]) -> list[dict]:
 
 
 def main() -> None:
-    """Print the calibration table (python -m sim.calibration)."""
+    """Print the calibration table (python -m mapfusion.harness.calibration)."""
     for row in summarise(calibration_runs()):
         tunnel = " + tunnel" if row["tunnel"] else ""
         print(f"{row['weather']:>10} {row['kind']:>3}{tunnel:9}  runs {row['runs']}  median {row['median_ate_m']:6.2f} m  "

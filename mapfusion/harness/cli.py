@@ -6,12 +6,10 @@ internal failure exits 1. Heavy modules are imported inside the commands so ``--
 
 from __future__ import annotations
 
-import inspect
 import json
 import math
 import os
 
-import numpy as np
 import logging
 import sys
 from pathlib import Path
@@ -21,7 +19,9 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from .errors import InputError
+from mapfusion.errors import InputError
+
+from .tables import paper_table, table_one
 
 app = typer.Typer(
     name="mapfusion",
@@ -82,15 +82,14 @@ def maps_build(
     osm: Annotated[str, typer.Argument(help="OSM file (.osm, .osm.gz, .osm.bz2, .osm.pbf) or a built-in map name.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the statistics as JSON.")] = False,
     spacing_m: Annotated[float, typer.Option(help="Way-point spacing in metres.")] = 1.0,
-    lane_width_m: Annotated[float, typer.Option(help="Lane width in metres (road width = lanes × lane width).")] = 3.0,
     no_cache: Annotated[bool, typer.Option("--no-cache", help="Rebuild even when a cached map exists.")] = False,
 ) -> None:
     """Build the processed road map of an OSM file (cached) and print its statistics."""
-    from .maps import resolve_map
-    from .roadmap import RoadMap, RoadMapConfig
+    from mapfusion.maps import resolve_map
+    from mapfusion.roadmap import RoadMap, RoadMapConfig
 
     try:
-        cfg = RoadMapConfig(spacing_m=spacing_m, lane_width_m=lane_width_m)
+        cfg = RoadMapConfig(spacing_m=spacing_m)
         path = resolve_map(osm)
         with err_console.status(f"building road map of {path.name} ..."):
             road = RoadMap.from_osm(path, cfg, cache=not no_cache)
@@ -101,24 +100,6 @@ def maps_build(
         print(json.dumps(stats.to_dict(), indent=2))
     else:
         console.print(_stats_table(stats, f"Road map: {path}"))
-
-
-def _parse_params(pairs: list[str], func) -> dict:
-    """``KEY=VALUE`` pairs → keyword arguments of ``func``, converted to its parameters' types."""
-    sig = inspect.signature(func)
-    out = {}
-    for pair in pairs:
-        if "=" not in pair:
-            raise InputError(f"--param {pair!r}: expected KEY=VALUE")
-        key, value = (s.strip() for s in pair.split("=", 1))
-        if key not in sig.parameters:
-            raise InputError(f"--param {key!r}: {func.__name__} takes {', '.join(sig.parameters) or 'no parameters'}")
-        default = sig.parameters[key].default
-        try:
-            out[key] = type(default)(value) if default is not inspect.Parameter.empty else float(value)
-        except ValueError as exc:
-            raise InputError(f"--param {key}={value!r}: not a {type(default).__name__}") from exc
-    return out
 
 
 @maps_app.command("generate")
@@ -137,14 +118,14 @@ def maps_generate(
     ] = None,
 ) -> None:
     """Write a synthetic OSM map (valid OSM XML with real highway, lanes, oneway, tunnel, bridge, layer tags)."""
-    from . import synthetic
+    from mapfusion import synthetic
 
     try:
         k = synthetic.SyntheticKind(kind)
     except ValueError:
         _fail(f"unknown map kind {kind!r}; known: {', '.join(x.value for x in synthetic.SyntheticKind)}")
     try:
-        params = _parse_params(param or [], synthetic._GENERATORS[k])
+        params = synthetic.parse_params(k, param or [])
         path = synthetic.write(k, out, **params)
     except InputError as exc:
         _fail(str(exc))
@@ -166,8 +147,9 @@ def maps_stress(
     seed: Annotated[int, typer.Option(help="Seed of offsets and heading errors.")] = 0,
 ) -> None:
     """Stress-test the road matcher around every junction; match rate overall and by junction kind."""
-    from .maps import resolve_map
-    from .roadmap import RoadMap, RoadMapConfig
+    from mapfusion.maps import resolve_map
+    from mapfusion.roadmap import RoadMap
+
     from .stress import StressConfig, run_stress
 
     try:
@@ -178,10 +160,11 @@ def maps_stress(
             radius_m=radius_m,
             angle_weight_m_per_deg=angle_weight,
             seed=seed,
+            lane_width_m=lane_width_m,
         )
         path = resolve_map(osm)
         with err_console.status(f"matching poses around the junctions of {path.name} ..."):
-            road = RoadMap.from_osm(path, RoadMapConfig(lane_width_m=lane_width_m))
+            road = RoadMap.from_osm(path)
             result = run_stress(road, cfg)
     except InputError as exc:
         _fail(str(exc))
@@ -244,9 +227,9 @@ def import_kitti_cmd(
 ) -> None:
     """A KITTI sequence as a run directory: truth.tum in the map's ENU frame (georeferenced to the RTK
     track with the antenna's lever arm), gps.csv from the track, import.json with the fit's residual."""
-    from .kitti import import_kitti, write_import
-    from .maps import resolve_map
-    from .roadmap import RoadMap
+    from mapfusion.kitti import import_kitti, write_import
+    from mapfusion.maps import resolve_map
+    from mapfusion.roadmap import RoadMap
 
     try:
         mp = resolve_map(map_path) if map_path else resolve_map(poses.parent / "map.osm")
@@ -274,65 +257,66 @@ def simulate(
     """Drive the scenario in SUMO (or take a recorded --truth), synthesise the sensors and write the run
     directory: scenario.toml (resolved), truth.tum, truth.csv, odometry.tum, gps.csv, imu.csv (and fleet.csv
     in fleet mode)."""
-    # The engine never needs SUMO: the simulation is imported only by the commands that drive it.
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from sim.drive import run_drive
-    from sim.network import RouteError, SimulationError, build_network
-    from sim.rundir import write_sensors, write_truth
+    from sim.network import RouteError, SimulationError
     from sim.scenario import load_scenario
-    from sim.sensors import Truth, synthesise, under_bridges
 
-    from .roadmap import RoadMap
+    from .pipeline import simulate_scenario, write_simulation
 
     try:
         sc = load_scenario(scenario)
-    except InputError as exc:
-        _fail(str(exc))
-    if truth is not None or sc.truth:
-        from sim.rundir import write_recorded_truth
-        from sim.run import simulate_scenario
-
-        try:
-            if truth is not None:
-                if not truth.exists():
-                    raise InputError(f"{truth}: no such file or directory")
-                sc = sc.replace(truth=str(truth.resolve()))
-            src = sc.truth
-            sim = simulate_scenario(sc)  # a recorded drive: no SUMO
-            rec, sensors = sim.truth, sim.sensors
-            write_recorded_truth(out, sc, rec.t_s, np.column_stack([rec.x_m, rec.y_m, rec.z_m]), rec.yaw_rad,
-                                 rec.visually_degraded, sim.road.projection)
-            write_sensors(out, sensors, sim.road.projection)
-        except InputError as exc:
-            _fail(str(exc))
-        console.print(f"{sc.name}: sensors on the recorded truth {src} ({len(rec):,} frames): "
-                      f"{len(sensors.odometry.t_s):,} odometry frames, {len(sensors.gps.t_s)} GPS fixes → {out}")
-        return
-    try:
-        with err_console.status("building road map and SUMO network ..."):
-            road = RoadMap.from_osm(sc.map)
-            net = build_network(sc.map)
-        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
-                      TimeElapsedColumn(), console=err_console, transient=True, disable=not err_console.is_terminal) as bar:
-            task = bar.add_task(f"simulating {sc.name}", total=sc.duration_s)
-            drive = run_drive(sc, road, net, progress=lambda t, total: bar.update(task, completed=t))
-        with err_console.status("synthesising odometry, IMU and GPS ..."):
-            bridges = under_bridges(road, drive.ego.x_m, drive.ego.y_m, drive.ego.osm_way)
-            sensors = synthesise(sc, Truth.from_track(drive.ego, bridges, sc.gps))
-        write_truth(out, sc, drive)
-        write_sensors(out, sensors, road.projection)
+        if truth is not None:
+            if not truth.exists():
+                raise InputError(f"{truth}: no such file or directory")
+            sc = sc.replace(truth=str(truth.resolve()))
+        with _SimBar(sc.name, sc.duration_s) as bar:
+            sim = simulate_scenario(sc, progress=bar.update)
+        write_simulation(out, sim)
     except RouteError as exc:
         _fail(f"{scenario}: {exc}")
-    except InputError as exc:
-        _fail(str(exc))
     except SimulationError as exc:
         _fail(f"{scenario}: {exc}", code=1)
-    console.print(
-        f"{sc.name}: {len(drive.ego):,} frames, {drive.ego.t_s[-1]:.1f} s simulated, {drive.ego.distance_m[-1]:,.0f} m driven "
-        f"(route {drive.route_length_m:,.0f} m), {drive.realtime_factor:,.0f}× real time; "
-        f"{len(sensors.odometry.t_s):,} odometry frames, {len(sensors.gps.t_s)} GPS fixes → {out}"
-    )
+    except InputError as exc:
+        _fail(str(exc))
+    n_odo, n_gps = len(sim.sensors.odometry.t_s), len(sim.sensors.gps.t_s)
+    if sim.drive is None:
+        console.print(f"{sc.name}: sensors on the recorded truth {sc.truth} ({len(sim.truth):,} frames): "
+                      f"{n_odo:,} odometry frames, {n_gps} GPS fixes → {out}")
+        return
+    d = sim.drive
+    console.print(f"{sc.name}: {len(d.ego):,} frames, {d.ego.t_s[-1]:.1f} s simulated, {d.ego.distance_m[-1]:,.0f} m driven "
+                  f"(route {d.route_length_m:,.0f} m), {d.realtime_factor:,.0f}× real time; "
+                  f"{n_odo:,} odometry frames, {n_gps} GPS fixes → {out}")
+
+
+class _Bar:
+    """A rich progress bar on stderr, silent off a terminal; subclasses say what it counts."""
+
+    def __init__(self, *columns, total: float | None, description: str = "", transient: bool = True) -> None:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), *columns, TimeElapsedColumn(),
+                            console=err_console, transient=transient, disable=not err_console.is_terminal)
+        self.task = self.bar.add_task(description, total=total)
+
+    def __enter__(self):
+        self.bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        self.bar.__exit__(*exc)
+
+
+class _SimBar(_Bar):
+    """Simulated seconds of a SUMO drive."""
+
+    def __init__(self, name: str, total_s: float) -> None:
+        from rich.progress import TextColumn
+
+        super().__init__(TextColumn("{task.completed:.0f}/{task.total:.0f} s"), total=total_s,
+                         description=f"simulating {name}")
+
+    def update(self, t: float, total: float) -> None:
+        self.bar.update(self.task, completed=t)
 
 
 @app.command()
@@ -354,62 +338,43 @@ def fuse(
                                                          "GPS for initialisation only).", min=0.0)] = None,
 ) -> None:
     """Run the engine on recorded odometry and GPS with an OSM map; write the online (causal) estimate."""
-    from .formats import FormatError, read_gps_csv, read_imu_csv, write_tum
-    from .maps import resolve_map
-    from .roadmap import RoadMap
-    from .runner import OdometryFormat, OdometryFrame, fuse as run_fuse, load_fusion_config, poses_to_arrays, read_odometry
+    from mapfusion.replay import OdometryFormat, OdometryFrame, load_fusion_config
+
+    from .pipeline import RecordedInputs, fuse_recorded, write_estimates
 
     try:
         try:
-            fmt = OdometryFormat(odometry_format)
-            frame = OdometryFrame(odometry_frame)
+            fmt, frame = OdometryFormat(odometry_format), OdometryFrame(odometry_frame)
         except ValueError as exc:
             raise InputError(f"{exc}; --odometry-format is tum or kitti, --odometry-frame is body or camera") from None
         cfg = load_fusion_config(config, **({"use_map": False} if no_map else {}))
-        t_odo, poses = read_odometry(odometry, fmt, times, frame)
-        fixes = read_gps_csv(gps) if gps is not None else None
-        if fixes is not None and gps_until_s is not None:
-            from .formats import GpsFixes
-
-            keep = fixes.t_s <= t_odo[0] + gps_until_s
-            fixes = GpsFixes(fixes.t_s[keep], fixes.lat_deg[keep], fixes.lon_deg[keep], fixes.alt_m[keep], fixes.sigma_m[keep])
-        if imu is not None:
-            read_imu_csv(imu)
-        with err_console.status("building road map ..."):
-            road = RoadMap.from_osm(resolve_map(map_path), RoadMapConfig_for(cfg))
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-        with Progress(TextColumn("[bold]fusing"), BarColumn(), TextColumn("{task.completed:,}/{task.total:,} frames"),
-                      TimeElapsedColumn(), console=err_console, transient=True, disable=not err_console.is_terminal) as bar:
-            task = bar.add_task("fuse", total=len(t_odo))
-            res = run_fuse(road, t_odo, poses, fixes, cfg, progress=lambda k, n: bar.update(task, completed=k))
-    except FormatError as exc:
-        _fail(str(exc))
+        inputs = RecordedInputs(map_path, odometry, fmt, frame, times, gps, gps_until_s, imu)
+        with _FrameBar() as bar:
+            res = fuse_recorded(inputs, cfg, progress=bar.update)
     except InputError as exc:
         _fail(str(exc))
     eng = res.engine
     if not eng.initialised:
         _fail("the engine never initialised: it needs GPS fixes while the vehicle moves "
-              f"(got {eng.counters.gps_before_init} fixes, {len(eng._scale_est.samples)} scale samples)")
-    idx = [i for i, p in enumerate(res.online) if p is not None]
-    xyz, q = poses_to_arrays([res.online[i] for i in idx])
-    write_tum(out, res.t_s[idx], xyz, q, header=f"Map-Fusion online estimate ({'no map' if no_map else 'with map'})")
-    if smoothed is not None:
-        ts = sorted(res.smoothed)
-        sxyz, sq = poses_to_arrays([res.smoothed[t] for t in ts])
-        write_tum(smoothed, np.asarray(ts), sxyz, sq, header="Map-Fusion smoothed trajectory")
+              f"(got {eng.counters.gps_before_init} fixes, {eng.scale_samples} scale samples)")
+    n = write_estimates(res, out, smoothed, f" ({'no map' if no_map else 'with map'})")
     c = eng.counters
-    console.print(f"{len(idx):,} poses → {out}; scale {eng.scale:.4f} ± {eng.scale_sigma or 0:.4f}, "
+    console.print(f"{n:,} poses → {out}; scale {eng.scale:.4f} ± {eng.scale_sigma or 0:.4f}, "
                   f"initialised at t = {eng.initialised_at:.1f} s; map priors {c.map_priors}, GPS used {c.gps_used} "
                   f"(rejected {c.gps_rejected_gate + c.gps_rejected_invalid}), odometry priors {c.odometry_priors}, "
                   f"recoveries {c.recoveries}")
 
 
-def RoadMapConfig_for(cfg):  # noqa: N802 - a small factory kept next to its one user
-    """The road map with the engine's lane width."""
-    from .roadmap import RoadMapConfig
+class _FrameBar(_Bar):
+    """Frames fused."""
 
-    return RoadMapConfig(lane_width_m=cfg.lane_width_m)
+    def __init__(self) -> None:
+        from rich.progress import TextColumn
+
+        super().__init__(TextColumn("{task.completed:,}/{task.total:,} frames"), total=None, description="fusing")
+
+    def update(self, k: int, n: int) -> None:
+        self.bar.update(self.task, completed=k, total=n)
 
 
 @app.command()
@@ -421,24 +386,12 @@ def evaluate(
     delocalization_m: Annotated[float, typer.Option(help="ATE above this counts as de-localised, metres.")] = 20.0,
 ) -> None:
     """ATE (the paper's), online error (no alignment; lateral and longitudinal parts) and RPE per 100 m."""
-    from .formats import FormatError, quaternion_to_yaw, read_tum
-    from .metrics import ate, associate, delocalized, online_error, rpe_per_100m
+    from .pipeline import evaluate_files
 
     try:
-        tt, xt, qt = read_tum(truth)
-        te, xe, qe = read_tum(estimate)
-        ia, ib = associate(te, tt, max_dt_s)
-        if len(ia) < 3:
-            raise InputError(f"{estimate}: only {len(ia)} poses match {truth} in time (within {max_dt_s} s)")
-        a = ate(xt[ib], xe[ia])
-        yt, ye = quaternion_to_yaw(qt[ib]), quaternion_to_yaw(qe[ia])
-        on = online_error(xt[ib], yt, xe[ia])
-        rpe = rpe_per_100m(xt[ib], yt, xe[ia], ye)
-    except (FormatError, InputError) as exc:
+        out = evaluate_files(truth, estimate, max_dt_s, delocalization_m)
+    except InputError as exc:
         _fail(str(exc))
-    out = {"frames": int(len(ia)), "ate_m": a, "delocalized": delocalized(a, delocalization_m),
-           "online_rmse_m": on.rmse_m, "online_max_m": on.max_m, "online_lateral_rmse_m": on.lateral_rmse_m,
-           "online_longitudinal_rmse_m": on.longitudinal_rmse_m, "rpe_per_100m_m": rpe}
     if as_json:
         print(json.dumps(out, indent=2))
         return
@@ -448,89 +401,6 @@ def evaluate(
     for k, v in out.items():
         t.add_row(k, "–" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v)))
     console.print(t)
-
-
-def _paper_table(rows: list[dict], title: str, strip_prefix: str = "", width: int | None = None) -> Table:
-    """Runs as columns, rows odometry / + Map-Fusion / reduction (ATE, m); x = de-localised; the
-    average leaves the de-localised runs out, as the paper's tables do. When the columns would not
-    fit in ``width`` characters, the same table turned: a row per run, then Avg."""
-    ok = [r for r in rows if "ate_odometry_m" in r]
-    names = [r["scenario"].removeprefix(strip_prefix) for r in rows]
-
-    def cell(r, key, flag):
-        if "ate_odometry_m" not in r:
-            return "failed"
-        return "x" if r[flag] else f"{r[key]:.2f}"
-
-    def reduction(r):
-        if "ate_odometry_m" not in r or r["delocalized_odometry"] or r["delocalized_mapfusion"]:
-            return "NA"
-        return f"{r['ate_reduction_m']:.2f}"
-
-    kept_o = [r["ate_odometry_m"] for r in ok if not r["delocalized_odometry"]]
-    kept_m = [r["ate_mapfusion_m"] for r in ok if not r["delocalized_mapfusion"]]
-    avg = lambda v: f"{sum(v) / len(v):.2f}" if v else "–"  # noqa: E731
-    both = [r for r in ok if not r["delocalized_odometry"] and not r["delocalized_mapfusion"]]
-    averages = (avg(kept_o), avg(kept_m), avg([r["ate_reduction_m"] for r in both]))
-    t = Table(title=title, show_lines=False)
-    needed = len("+ Map-Fusion") + sum(max(len(n), 7) + 3 for n in names) + 10
-    if width is not None and needed > width:
-        t.add_column("run", no_wrap=True)
-        for c in ("odometry", "+ Map-Fusion", "reduction"):
-            t.add_column(c, justify="right")
-        for n, r in zip(names, rows):
-            t.add_row(n, cell(r, "ate_odometry_m", "delocalized_odometry"),
-                      cell(r, "ate_mapfusion_m", "delocalized_mapfusion"), reduction(r))
-        t.add_row("Avg", *averages, style="bold")
-        return t
-    t.add_column("ATE (m)", no_wrap=True)
-    for n in names:
-        t.add_column(n, justify="right")
-    t.add_column("Avg", justify="right", style="bold")
-    t.add_row("odometry", *[cell(r, "ate_odometry_m", "delocalized_odometry") for r in rows], averages[0])
-    t.add_row("+ Map-Fusion", *[cell(r, "ate_mapfusion_m", "delocalized_mapfusion") for r in rows], averages[1])
-    t.add_row("reduction", *[reduction(r) for r in rows], averages[2], style="italic")
-    return t
-
-
-def _table_one(rows: list[dict], title: str) -> Table:
-    """The paper's Table I layout for recorded drives: sequences as columns, for each odometry kind ×
-    weather the rows odometry / + Map-Fusion / reduction (ATE, m). A cell over several seeds is their
-    mean; x = every seed de-localised; Avg leaves de-localised cells out, as the paper does."""
-    import numpy as np
-
-    ok = [r for r in rows if "ate_odometry_m" in r]
-    seq = lambda r: Path(r.get("recorded", r["scenario"])).name  # noqa: E731
-    columns = sorted({seq(r) for r in rows})
-    groups = sorted({(r.get("odometry", "?"), r.get("weather", "?")) for r in rows})
-    t = Table(title=title, show_lines=False)
-    t.add_column("ATE (m)", no_wrap=True)
-    for c in columns:
-        t.add_column(c, justify="right")
-    t.add_column("Avg", justify="right", style="bold")
-
-    def cell(runs, key, flag):
-        kept = [r[key] for r in runs if not r[flag]]
-        return float(np.mean(kept)) if kept else None
-
-    for odo, weather in groups:
-        cells_o, cells_m = [], []
-        for c in columns:
-            runs = [r for r in ok if seq(r) == c and (r["odometry"], r["weather"]) == (odo, weather)]
-            failed = any(seq(r) == c and (r.get("odometry"), r.get("weather")) == (odo, weather) and "error" in r
-                         for r in rows)
-            cells_o.append("failed" if failed and not runs else cell(runs, "ate_odometry_m", "delocalized_odometry") if runs else "")
-            cells_m.append("failed" if failed and not runs else cell(runs, "ate_mapfusion_m", "delocalized_mapfusion") if runs else "")
-        fmt = lambda v: v if isinstance(v, str) else ("x" if v is None else f"{v:.2f}")  # noqa: E731
-        num = lambda vs: [v for v in vs if isinstance(v, float)]  # noqa: E731
-        both = [(a, b) for a, b in zip(cells_o, cells_m) if isinstance(a, float) and isinstance(b, float)]
-        avg = lambda v: f"{sum(v) / len(v):.2f}" if v else "–"  # noqa: E731
-        label = f"{odo.upper()} {weather.replace('_', ' ')}"
-        t.add_row(label, *[fmt(v) for v in cells_o], avg(num(cells_o)))
-        t.add_row(f"{label} + Map-Fusion", *[fmt(v) for v in cells_m], avg(num(cells_m)))
-        red = [f"{a - b:.2f}" if isinstance(a, float) and isinstance(b, float) else "NA" for a, b in zip(cells_o, cells_m)]
-        t.add_row("reduction", *red, avg([a - b for a, b in both]), style="italic", end_section=True)
-    return t
 
 
 def _default_workers() -> int:
@@ -557,27 +427,18 @@ def _load_runs(paths: list[Path]):
     return scenarios
 
 
-class _RunBar:
-    """A progress bar of runs done, failed and remaining (silent off a terminal)."""
+class _RunBar(_Bar):
+    """Runs (or fusions, trials) done, failed and remaining."""
 
     def __init__(self, total: int, label: str = "runs") -> None:
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+        from rich.progress import TextColumn, TimeRemainingColumn
 
         self.done = self.failed = 0
         self.total = total
-        self.bar = Progress(TextColumn(f"[bold]{label}"), BarColumn(),
-                            TextColumn("{task.fields[done]} done, [red]{task.fields[failed]} failed[/], "
-                                       "{task.fields[left]} remaining"),
-                            TimeElapsedColumn(), TimeRemainingColumn(), console=err_console,
-                            disable=not err_console.is_terminal)
-        self.task = self.bar.add_task(label, total=total, done=0, failed=0, left=total)
-
-    def __enter__(self):
-        self.bar.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        self.bar.__exit__(*exc)
+        super().__init__(TextColumn("{task.fields[done]} done, [red]{task.fields[failed]} failed[/], "
+                                    "{task.fields[left]} remaining"), TimeRemainingColumn(),
+                         total=total, description=label, transient=False)
+        self.bar.update(self.task, done=0, failed=0, left=total)
 
     def advance(self, failed: bool) -> None:
         self.done += not failed
@@ -599,7 +460,7 @@ def run(
     """Each scenario (or every run of a family): simulate, baseline and Map-Fusion, evaluate; one run
     directory each, results.jsonl (a line per finished run, appended at once), and the paper-style
     table. Runs already in results.jsonl without error are skipped: the same command resumes."""
-    from sim.batch import ResultsLog, run_logged
+    from .batch import ResultsLog, run_logged
 
     scenarios = _load_runs(paths)
     out.mkdir(parents=True, exist_ok=True)
@@ -610,7 +471,7 @@ def run(
     with _RunBar(left) as bar:
         rows, _ = run_logged(scenarios, out, workers=workers or _default_workers(), plot=not no_plot,
                              scheduler=scheduler, on_row=lambda row: bar.advance("error" in row))
-    console.print(_paper_table(rows, f"ATE over {len(rows)} run(s) → {out}", width=console.width))
+    console.print(paper_table(rows, f"ATE over {len(rows)} run(s) → {out}", width=console.width))
     failed_rows = [r for r in rows if "error" in r]
     for r in failed_rows:
         err_console.print(f"[red]{r['scenario']} failed:[/] {r['error']}", highlight=False)
@@ -635,49 +496,19 @@ def sweep(
     fused at every grid point. results.jsonl gets a line per (run, grid point), with `params` (a
     variant's name under `variant`); the same command resumes. Writes a heatmap of the mean
     Map-Fusion ATE and prints the grid."""
-    from sim.batch import ResultsLog, run_tasks
-    from sim.sweep import grid_points, mean_ate_table, parse_grid, parse_variants, plot_heatmap, row_key, sweep_task
+    from .sweep import plan_sweep, plot_heatmap, run_sweep
 
+    scenarios = _load_runs(paths)
     try:
-        if not param and not variant:
-            raise InputError("give at least one --param NAME=V1,V2,... or --variant")
-        variants = parse_variants(variant or [])
-        grid = {"variant": list(variants)} if variants else {}
-        if param:
-            grid.update(parse_grid(param))
+        plan = plan_sweep(scenarios, param or [], variant or [], out)
     except InputError as exc:
         _fail(str(exc))
-    scenarios = _load_runs(paths)
     out.mkdir(parents=True, exist_ok=True)
-    results = ResultsLog(out / "results.jsonl")
-    done = results.done(row_key)
-    points = grid_points(grid)
-    jobs = []
-    for sc in scenarios:
-        todo = [p for p in points if row_key({"scenario": sc.name, "params": p}) not in done]
-        if todo:
-            jobs.append((sc, todo, variants))
-    left = sum(len(j[1]) for j in jobs)
-    if left < len(scenarios) * len(points):
-        err_console.print(f"resuming: {len(scenarios) * len(points) - left} of {len(scenarios) * len(points)} "
-                          f"fusions already in {results.path}")
-    sims = 0
-    with _RunBar(left, "fusions") as bar:
-        def finished(job, rows):
-            nonlocal sims
-            for row in rows:
-                sims += bool(row.get("simulated"))
-                results.append(row)
-                bar.advance("error" in row)
-
-        def failed(job, err):
-            finished(job, [{"scenario": job[0].name, "seed": job[0].seed, "params": p, **err} for p in job[1]])
-
-        run_tasks(jobs, sweep_task, workers=workers or _default_workers(), on_rows=finished, on_failure=failed,
-                  scheduler=scheduler)
-    names = {sc.name for sc in scenarios}
-    rows = [r for r in results.latest(row_key).values() if r.get("scenario") in names]
-    table = mean_ate_table(rows, grid)
+    if plan.left < plan.total:
+        err_console.print(f"resuming: {plan.total - plan.left} of {plan.total} fusions already in {plan.results_path}")
+    with _RunBar(plan.left, "fusions") as bar:
+        table, sims = run_sweep(plan, workers or _default_workers(), scheduler, on_row=lambda r: bar.advance("error" in r))
+    grid, left = plan.grid, plan.left
     t = Table(title=f"mean ATE (m) over {len(scenarios)} run(s) per grid point")
     for k in grid:
         t.add_column(k, justify="right")
@@ -709,31 +540,11 @@ def tune(
     """Optuna over lane width, yaw σ, angle weight and search radius: objective = mean Map-Fusion ATE
     plus a penalty per de-localisation, each scenario simulated once. The paper's defaults are the
     first trial; prints the best parameters against them and writes a sensitivity plot."""
-    from sim.sweep import PAPER_DEFAULTS, TUNE_RANGES, plot_sensitivity, tune as run_study
+    from .sweep import PAPER_DEFAULTS, parse_ranges, parse_starts, plot_sensitivity, tune as run_study
 
     try:
-        ranges = dict(TUNE_RANGES) if not range_ else {}
-        for spec in range_ or []:
-            name, sep, span = spec.partition("=")
-            lo, sep2, hi = span.partition(":")
-            if not sep or not sep2:
-                raise InputError(f"--range {spec!r}: expected NAME=LOW:HIGH")
-            try:
-                ranges[name.strip()] = (float(lo), float(hi))
-            except ValueError:
-                raise InputError(f"--range {spec!r}: LOW and HIGH must be numbers") from None
-        starts = []
-        for spec in start or []:
-            d = {}
-            for part in spec.split(","):
-                k, sep, v = part.partition("=")
-                if not sep or k.strip() not in ranges:
-                    raise InputError(f"--start {spec!r}: expected NAME=VALUE,... over the tuned parameters ({', '.join(ranges)})")
-                try:
-                    d[k.strip()] = float(v)
-                except ValueError:
-                    raise InputError(f"--start {spec!r}: {k} must be a number") from None
-            starts.append(d)
+        ranges = parse_ranges(range_ or [])
+        starts = parse_starts(start or [], ranges)
         scenarios = _load_runs(paths)
         out.mkdir(parents=True, exist_ok=True)
         url = storage or f"sqlite:///{(out / 'study.db').resolve()}"
@@ -794,14 +605,14 @@ def demo(
 ) -> None:
     """The main job on the bundled Helsinki map: one rain drive with a GPS-denied zone, VO odometry,
     GPS at the start only; baseline and Map-Fusion, the paper-style table and plot.png."""
-    from sim.run import run_scenario
+    from .pipeline import run_scenario
     from sim.scenario import scenario_from_dict
 
     sc = scenario_from_dict(DEMO_SCENARIO, "the demo scenario")
     with err_console.status("SUMO drive, sensors, baseline and Map-Fusion ..."):
         outcome = run_scenario(sc, out)
     m = outcome.metrics
-    console.print(_paper_table([m], "Demo: Helsinki, rain, 80 m GPS-denied zone, VO, GPS at start only"))
+    console.print(paper_table([m], "Demo: Helsinki, rain, 80 m GPS-denied zone, VO, GPS at start only"))
     if "online_rmse_odometry_m" in m:
         console.print(
             f"online error (what a tracker sees, no alignment): odometry {m['online_rmse_odometry_m']:.1f} m RMSE, "
@@ -809,6 +620,33 @@ def demo(
             f"{m['driven_m'] / 1000:.2f} km in {m['duration_s']:.0f} s"
         )
     console.print(f"run directory: {out}  (plot: {out / 'plot.png'})")
+
+
+@app.command()
+def bench(
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON object a line, `benchmark` names it.")] = False,
+    duration_s: Annotated[float, typer.Option("--duration-s", min=60.0, help="Length of the engine's synthetic drive, "
+                                              "seconds (10 Hz odometry).")] = 3600.0,
+    city_km: Annotated[str, typer.Option("--city-km", help="Size of the synthetic city, WIDTHxHEIGHT km.")] = "10x15",
+) -> None:
+    """Throughput of the road-map build, the engine (with map priors, against a bare GTSAM chain measured
+    in the same run: ratio_to_bare) and the matcher (against a k-d tree ball query: *_ratio_to_kdtree)."""
+    from .bench import run_benchmarks
+
+    try:
+        w, sep, h = city_km.lower().partition("x")
+        size = (float(w), float(h))
+        if not sep or not (0 < size[0] <= 10 and 0 < size[1] <= 15):
+            raise ValueError
+    except ValueError:
+        _fail(f"--city-km {city_km!r}: expected WIDTHxHEIGHT in km, at most 10x15")
+    with err_console.status("benchmarking (road map, engine, matcher) ..."):
+        for row in run_benchmarks(duration_s, size):
+            if as_json:
+                print(json.dumps(row), flush=True)
+            else:
+                console.print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
+                              highlight=False)
 
 
 def main() -> None:

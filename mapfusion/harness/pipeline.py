@@ -1,5 +1,6 @@
-"""One scenario end to end: simulate, synthesise the sensors, run the baseline and Map-Fusion,
-evaluate, and write the run directory (DESIGN "File formats", contract)."""
+"""The pipelines every command shares: one scenario simulated (a SUMO drive or a recorded one, then
+the sensors), fused (baseline and Map-Fusion), evaluated and written as a run directory (DESIGN
+"File formats", contract); and the engine on recorded files (``mapfusion fuse``)."""
 
 from __future__ import annotations
 
@@ -15,15 +16,17 @@ import numpy as np
 from mapfusion.formats import GpsFixes, write_tum
 from mapfusion.metrics import associate, ate, delocalized, match_rate, online_error, rpe_per_100m, zone_rmse
 from mapfusion.config import FusionConfig
-from mapfusion.roadmap import RoadMap, RoadMapConfig
-from mapfusion.runner import FusionResult, fuse, poses_to_arrays
+from mapfusion.roadmap import RoadMap
+from mapfusion.replay import FusionResult, OdometryFormat, OdometryFrame, fuse, poses_to_arrays, read_odometry
 
-from .drive import DriveResult, run_drive
-from .network import build_network
-from .recorded import RecordedDrive, load_recorded, recorded_gps
+from .results import Estimator, ate_key, estimator_metrics, non_finite_to_none
+
+from sim.drive import DriveResult, run_drive
+from sim.network import build_network
+from sim.recorded import RecordedDrive, load_recorded, recorded_gps
 from .rundir import write_recorded_truth, write_sensors, write_truth
-from .scenario import GpsSource, Scenario
-from .sensors import SensorData, Truth, synthesise, under_bridges
+from sim.scenario import GpsSource, Scenario
+from sim.sensors import SensorData, Truth, synthesise, under_bridges
 
 
 @dataclass
@@ -44,7 +47,7 @@ def _online_arrays(res: FusionResult):
     return res.t_s[ok], xyz, yaw, ok
 
 
-def _evaluate(res: FusionResult, truth: Truth, prefix: str, deloc_m: float) -> dict:
+def _evaluate(res: FusionResult, truth: Truth, estimator: Estimator, deloc_m: float) -> dict:
     t, xyz, yaw, _ = _online_arrays(res)
     e = truth
     ia, ib = associate(t, e.t_s)
@@ -53,11 +56,7 @@ def _evaluate(res: FusionResult, truth: Truth, prefix: str, deloc_m: float) -> d
     on = online_error(gt, e.yaw_rad[ib], xyz[ia])
     tun = zone_rmse(gt, xyz[ia], e.visually_degraded[ib])
     rpe = rpe_per_100m(gt, e.yaw_rad[ib], xyz[ia], yaw[ia])
-    return {f"ate_{prefix}_m": a, f"delocalized_{prefix}": delocalized(a, deloc_m),
-            f"online_rmse_{prefix}_m": on.rmse_m, f"online_max_{prefix}_m": on.max_m,
-            f"online_lateral_rmse_{prefix}_m": on.lateral_rmse_m,
-            f"online_longitudinal_rmse_{prefix}_m": on.longitudinal_rmse_m,
-            f"tunnel_rmse_{prefix}_m": tun, f"rpe_100m_{prefix}_m": rpe}
+    return estimator_metrics(estimator, a, delocalized(a, deloc_m), on, tun, rpe)
 
 
 def fixes_of(sensors: SensorData, road: RoadMap) -> GpsFixes:
@@ -81,14 +80,14 @@ class Simulation:
 
 def simulate_scenario(sc: Scenario, progress=None) -> Simulation:
     """Drive ``sc`` in SUMO (or load its recorded drive) and synthesise its sensors."""
-    road = RoadMap.from_osm(sc.map, RoadMapConfig(lane_width_m=sc.mapfusion.lane_width_m))
+    road = RoadMap.from_osm(sc.map)
     if sc.truth:  # a recorded drive: no SUMO
         rec = load_recorded(sc.truth, sc, road)
         sensors = synthesise(sc, rec.truth, recorded_gps(rec, sc.gps) if sc.gps.source is GpsSource.recorded else None)
         return Simulation(sc, road, rec.truth, None, sensors, rec.length_m, rec)
     net = build_network(sc.map)
     drive = run_drive(sc, road, net, progress=progress)
-    bridges = under_bridges(road, drive.ego.x_m, drive.ego.y_m, drive.ego.osm_way)
+    bridges = under_bridges(road, drive.ego.x_m, drive.ego.y_m, drive.ego.osm_way, sc.gps.bridge_lane_width_m)
     truth = Truth.from_track(drive.ego, bridges, sc.gps)
     return Simulation(sc, road, truth, drive, synthesise(sc, truth), drive.route_length_m)
 
@@ -99,8 +98,6 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
     simulation's sensors, both evaluated: (metrics, baseline, Map-Fusion)."""
     sc, truth, sensors = sim.sc, sim.truth, sim.sensors
     road = sim.road
-    if road.config.lane_width_m != cfg.lane_width_m:
-        road = RoadMap.from_osm(sc.map, RoadMapConfig(lane_width_m=cfg.lane_width_m))
     fixes = fixes_of(sensors, road)
     odo = sensors.odometry
     base = baseline or fuse(road, odo.t_s, odo.poses, fixes, dataclasses.replace(cfg, use_map=False))
@@ -120,11 +117,11 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
     if not (base.engine.initialised and mf.engine.initialised):
         metrics.update({"error": "the engine never initialised (too few GPS fixes while moving)"})
     else:
-        mb = _evaluate(base, truth, "odometry", cfg.delocalization_m)
-        mm = _evaluate(mf, truth, "mapfusion", cfg.delocalization_m)
+        mb = _evaluate(base, truth, Estimator.odometry, cfg.delocalization_m)
+        mm = _evaluate(mf, truth, Estimator.mapfusion, cfg.delocalization_m)
         metrics.update(mb)
         metrics.update(mm)
-        metrics["ate_reduction_m"] = mb["ate_odometry_m"] - mm["ate_mapfusion_m"]
+        metrics["ate_reduction_m"] = mb[ate_key(Estimator.odometry)] - mm[ate_key(Estimator.mapfusion)]
         # match rate: frames outside junctions whose matched way is the way SUMO drives on (a
         # recorded drive has no such truth: null)
         metrics["match_rate"] = metrics["match_rate_road"] = None
@@ -144,10 +141,7 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
                         "recoveries": c.recoveries, "gps_relocalisations": c.gps_relocalisations,
                         "scale": mf.engine.scale, "initialised_at_s": mf.engine.initialised_at})
     metrics["fusion_frames_per_s"] = fusion_fps
-    for k, v in list(metrics.items()):
-        if isinstance(v, float) and not math.isfinite(v):
-            metrics[k] = None
-    return metrics, base, mf
+    return non_finite_to_none(metrics), base, mf
 
 
 def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None, plot: bool = True) -> RunOutcome:
@@ -161,14 +155,20 @@ def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None,
     return outcome
 
 
-def write_run(d: Path, sc: Scenario, o: RunOutcome, plot: bool = True) -> None:
-    if o.drive is not None:
-        write_truth(d, sc, o.drive)
+def write_simulation(d: Path, sim: Simulation) -> None:
+    """The simulated part of a run directory: scenario.toml, truth.tum, truth.csv and the sensors."""
+    if sim.drive is not None:
+        write_truth(d, sim.sc, sim.drive)
     else:
-        t = o.truth
-        write_recorded_truth(d, sc, t.t_s, np.column_stack([t.x_m, t.y_m, t.z_m]), t.yaw_rad, t.visually_degraded,
-                             o.road.projection)
-    write_sensors(d, o.sensors, o.road.projection)
+        t = sim.truth
+        write_recorded_truth(d, sim.sc, t.t_s, np.column_stack([t.x_m, t.y_m, t.z_m]), t.yaw_rad, t.visually_degraded,
+                             sim.road.projection)
+    write_sensors(d, sim.sensors, sim.road.projection)
+
+
+def write_run(d: Path, sc: Scenario, o: RunOutcome, plot: bool = True) -> None:
+    """Every file of a run directory."""
+    write_simulation(d, Simulation(sc, o.road, o.truth, o.drive, o.sensors, math.nan))
     for name, res in (("estimate_odometry.tum", o.baseline), ("estimate_mapfusion.tum", o.mapfusion)):
         t, _, _, ok = _online_arrays(res)
         if len(ok):
@@ -176,10 +176,75 @@ def write_run(d: Path, sc: Scenario, o: RunOutcome, plot: bool = True) -> None:
             write_tum(d / name, t, xyz, q, header=f"{name[:-4]}: online (causal) estimates, map ENU frame")
     (d / "metrics.json").write_text(json.dumps(o.metrics, indent=2) + "\n")
     eng = o.mapfusion.engine
-    events = {"map_prior_t": [float(eng._t[k]) for k in eng.map_prior_frames], "counters": eng.counters.as_dict(),
+    events = {"map_prior_t": [float(t) for t in eng.map_prior_times()], "counters": eng.counters.as_dict(),
               "initialised_at_s": eng.initialised_at, "scale": eng.scale, "scale_sigma": eng.scale_sigma}
     (d / "fusion_events.json").write_text(json.dumps(events, indent=2) + "\n")
     if plot:
-        from mapfusion.plot import plot_run
+        from .plot import plot_run
 
         plot_run(d, d / "plot.png", road=o.road)
+
+
+# ----------------------------------------------------------------------------- recorded data
+@dataclass(frozen=True)
+class RecordedInputs:
+    """What ``mapfusion fuse`` reads: the map, the odometry and optional GPS and IMU files."""
+
+    map: str
+    odometry: Path
+    odometry_format: OdometryFormat = OdometryFormat.tum
+    odometry_frame: OdometryFrame = OdometryFrame.body
+    times: Path | None = None
+    gps: Path | None = None
+    gps_until_s: float | None = None  # fixes only this long from the first odometry frame
+    imu: Path | None = None  # read and checked; the engine does not use it yet
+
+
+def fuse_recorded(inputs: RecordedInputs, cfg: FusionConfig, progress=None, on_map_build=None) -> FusionResult:
+    """The engine on recorded files (InputError / FormatError on bad input). ``on_map_build`` is
+    called before the road map is built (the CLI shows a status)."""
+    from mapfusion.formats import read_gps_csv, read_imu_csv
+    from mapfusion.maps import resolve_map
+
+    t_odo, poses = read_odometry(inputs.odometry, inputs.odometry_format, inputs.times, inputs.odometry_frame)
+    fixes = read_gps_csv(inputs.gps) if inputs.gps is not None else None
+    if fixes is not None and inputs.gps_until_s is not None:
+        fixes = fixes.until(t_odo[0] + inputs.gps_until_s)
+    if inputs.imu is not None:
+        read_imu_csv(inputs.imu)
+    if on_map_build is not None:
+        on_map_build()
+    road = RoadMap.from_osm(resolve_map(inputs.map))
+    return fuse(road, t_odo, poses, fixes, cfg, progress=progress)
+
+
+def write_estimates(res: FusionResult, out: Path, smoothed: Path | None = None, label: str = "") -> int:
+    """The online estimate (and optionally the smoothed trajectory) as TUM; returns the poses written."""
+    t, _, _, ok = _online_arrays(res)
+    xyz, q = poses_to_arrays([res.online[i] for i in ok])
+    write_tum(out, t, xyz, q, header=f"Map-Fusion online estimate{label}")
+    if smoothed is not None:
+        ts = sorted(res.smoothed)
+        sxyz, sq = poses_to_arrays([res.smoothed[t] for t in ts])
+        write_tum(smoothed, np.asarray(ts), sxyz, sq, header="Map-Fusion smoothed trajectory")
+    return len(ok)
+
+
+def evaluate_files(truth: Path, estimate: Path, max_dt_s: float = 0.02, delocalization_m: float = 20.0) -> dict:
+    """``mapfusion evaluate``: ATE, online error (lateral, longitudinal) and RPE per 100 m of a TUM
+    estimate against a TUM truth (InputError / FormatError on bad input)."""
+    from mapfusion.errors import InputError
+    from mapfusion.formats import quaternion_to_yaw, read_tum
+
+    tt, xt, qt = read_tum(truth)
+    te, xe, qe = read_tum(estimate)
+    ia, ib = associate(te, tt, max_dt_s)
+    if len(ia) < 3:
+        raise InputError(f"{estimate}: only {len(ia)} poses match {truth} in time (within {max_dt_s} s)")
+    a = ate(xt[ib], xe[ia])
+    yt, ye = quaternion_to_yaw(qt[ib]), quaternion_to_yaw(qe[ia])
+    on = online_error(xt[ib], yt, xe[ia])
+    rpe = rpe_per_100m(xt[ib], yt, xe[ia], ye)
+    return {"frames": int(len(ia)), "ate_m": a, "delocalized": delocalized(a, delocalization_m),
+            "online_rmse_m": on.rmse_m, "online_max_m": on.max_m, "online_lateral_rmse_m": on.lateral_rmse_m,
+            "online_longitudinal_rmse_m": on.longitudinal_rmse_m, "rpe_per_100m_m": rpe}

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .formats import read_gps_csv, read_tum
-from .metrics import associate
+from mapfusion.errors import InputError
+from mapfusion.formats import read_gps_csv, read_tum
+from mapfusion.metrics import associate
 
 FIGSIZE_IN = (12.0, 10.0)
 DPI = 100  # → 1200 × 1000 pixels
@@ -57,7 +57,7 @@ def plot_run(run_dir: str | Path, out: str | Path, road=None) -> Path:
     dist = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))))
     if road is None and (run / "scenario.toml").exists():
         try:
-            from .roadmap import RoadMap
+            from mapfusion.roadmap import RoadMap
 
             sc = tomllib.loads((run / "scenario.toml").read_text())
             road = RoadMap.from_osm(sc["map"])

@@ -8,9 +8,9 @@ from pathlib import Path
 
 from mapfusion.formats import matrices_to_tum, write_gps_csv, write_imu_csv, write_tum, yaw_to_quaternion
 
-from .drive import DriveResult, Track
-from .scenario import Scenario
-from .sensors import SensorData
+from sim.drive import DriveResult, Track
+from sim.scenario import Scenario
+from sim.sensors import SensorData
 
 #: truth.csv columns: the contract's first, then this test bed's additions at the end.
 TRUTH_COLUMNS = ("t", "x", "y", "z", "yaw", "speed", "lat", "lon", "sumo_edge", "osm_way", "in_tunnel",

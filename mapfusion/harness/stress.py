@@ -15,8 +15,8 @@ from enum import Enum
 
 import numpy as np
 
-from .errors import ConfigError
-from .roadmap import RoadMap
+from mapfusion.errors import ConfigError
+from mapfusion.roadmap import RoadMap
 
 
 class JunctionKind(str, Enum):
@@ -52,6 +52,8 @@ class StressConfig:
     """Two roads of a three-way junction leaving within this angle make it a y-split."""
     seed: int = 0
     """Seed of the offsets and heading errors."""
+    lane_width_m: float = 3.0
+    """Lane width: road width = lanes × this (the engine's FusionConfig.lane_width_m default)."""
 
     def __post_init__(self) -> None:
         if not (self.offset_extra_m >= 0 and self.heading_error_deg >= 0):
@@ -210,7 +212,7 @@ def stress_poses(road: RoadMap, cfg: StressConfig = StressConfig()) -> StressPos
     vertex = np.repeat(np.array([r[2] for r in rows]), cfg.poses_per_station)
     n = len(idx)
     heading = road.yaw_rad[idx] + np.where(sign < 0, np.pi, 0.0)
-    max_off = road.width_m[idx] + cfg.offset_extra_m
+    max_off = road.width_m(cfg.lane_width_m)[idx] + cfg.offset_extra_m
     offset = rng.uniform(-1.0, 1.0, n) * max_off
     err = np.radians(rng.uniform(-cfg.heading_error_deg, cfg.heading_error_deg, n))
     x = road.xy_m[idx, 0] - np.sin(heading) * offset

@@ -22,7 +22,7 @@ import numpy as np
 from mapfusion.config import FusionConfig, from_mapping, to_mapping
 from mapfusion.errors import ConfigError, InputError
 
-from .scenario import Scenario
+from sim.scenario import Scenario
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +146,7 @@ def _baseline_key(cfg: FusionConfig) -> str:
 def _fuse_reusing_baseline(sim, cfg: FusionConfig, baselines: dict) -> dict:
     """``fuse_and_evaluate`` on one simulation, reusing the baseline already fused for what it
     reads (``baselines``: that simulation's cache, filled here); the metrics."""
-    from .run import fuse_and_evaluate
+    from .pipeline import fuse_and_evaluate
 
     key = _baseline_key(cfg)  # odometry priors read lane width and yaw σ
     m, baselines[key], _ = fuse_and_evaluate(sim, cfg, baselines.get(key))
@@ -156,7 +156,7 @@ def _fuse_reusing_baseline(sim, cfg: FusionConfig, baselines: dict) -> dict:
 def sweep_task(job: tuple[Scenario, list[dict], dict[str, dict]]) -> list[dict]:
     """One scenario simulated once, then fused at every grid point (a task of ``run_tasks``);
     ``job`` is (scenario, points, the variants the points may name)."""
-    from .run import simulate_scenario
+    from .pipeline import simulate_scenario
 
     sc, points, variants = job
     try:
@@ -179,15 +179,14 @@ def sweep_task(job: tuple[Scenario, list[dict], dict[str, dict]]) -> list[dict]:
 
 def mean_ate_table(rows: list[dict], grid: dict[str, list]) -> dict[str, dict]:
     """Per grid point (its JSON): mean Map-Fusion ATE, mean odometry ATE, runs, de-localised, failed."""
+    from .results import summarise
+
     out = {}
     for p in grid_points(grid):
         k = json.dumps(p, sort_keys=True)
-        rs = [r for r in rows if json.dumps(r.get("params", {}), sort_keys=True) == k]
-        ok = [r for r in rs if "error" not in r]
-        out[k] = {"params": p, "runs": len(ok), "failed": len(rs) - len(ok),
-                  "ate_mapfusion_m": float(np.mean([r["ate_mapfusion_m"] for r in ok])) if ok else math.nan,
-                  "ate_odometry_m": float(np.mean([r["ate_odometry_m"] for r in ok])) if ok else math.nan,
-                  "delocalized": int(sum(r["delocalized_mapfusion"] for r in ok))}
+        s = summarise(r for r in rows if json.dumps(r.get("params", {}), sort_keys=True) == k)
+        out[k] = {"params": p, "runs": s.runs, "failed": s.failed, "ate_mapfusion_m": s.mean_mapfusion_m,
+                  "ate_odometry_m": s.mean_odometry_m, "delocalized": s.delocalized_mapfusion}
     return out
 
 
@@ -261,7 +260,7 @@ def tune(scenarios: list[Scenario], trials: int, storage: str, study_name: str,
     several processes can share it."""
     import optuna
 
-    from .run import simulate_scenario
+    from .pipeline import simulate_scenario
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     ranges = ranges or TUNE_RANGES
@@ -330,3 +329,101 @@ def plot_sensitivity(storage: str, study_name: str, path: str | Path) -> Path:
     fig.savefig(path)
     plt.close(fig)
     return Path(path)
+
+
+def parse_ranges(specs: list[str]) -> dict[str, tuple[float, float]]:
+    """``mapfusion tune --range NAME=LOW:HIGH`` (repeatable) → ranges; none given: :data:`TUNE_RANGES`."""
+    if not specs:
+        return dict(TUNE_RANGES)
+    ranges: dict[str, tuple[float, float]] = {}
+    for spec in specs:
+        name, sep, span = spec.partition("=")
+        lo, sep2, hi = span.partition(":")
+        if not sep or not sep2:
+            raise InputError(f"--range {spec!r}: expected NAME=LOW:HIGH")
+        try:
+            ranges[name.strip()] = (float(lo), float(hi))
+        except ValueError:
+            raise InputError(f"--range {spec!r}: LOW and HIGH must be numbers") from None
+    return ranges
+
+
+def parse_starts(specs: list[str], ranges: dict[str, tuple[float, float]]) -> list[dict[str, float]]:
+    """``mapfusion tune --start NAME=VALUE,...`` (repeatable) → first trials over the tuned parameters."""
+    starts = []
+    for spec in specs:
+        d = {}
+        for part in spec.split(","):
+            k, sep, v = part.partition("=")
+            if not sep or k.strip() not in ranges:
+                raise InputError(f"--start {spec!r}: expected NAME=VALUE,... over the tuned parameters ({', '.join(ranges)})")
+            try:
+                d[k.strip()] = float(v)
+            except ValueError:
+                raise InputError(f"--start {spec!r}: {k} must be a number") from None
+        starts.append(d)
+    return starts
+
+
+@dataclass
+class SweepPlan:
+    """A sweep over scenarios × grid points, and what ``results.jsonl`` already holds."""
+
+    scenarios: list
+    grid: dict[str, list]
+    variants: dict[str, dict]
+    results_path: Path
+    jobs: list = dataclasses.field(default_factory=list)  # (scenario, grid points still to fuse, variants)
+
+    @property
+    def total(self) -> int:
+        return len(self.scenarios) * len(grid_points(self.grid))
+
+    @property
+    def left(self) -> int:
+        return sum(len(j[1]) for j in self.jobs)
+
+
+def plan_sweep(scenarios: list, params: list[str], variants: list[str], out: Path) -> SweepPlan:
+    """Parse the grid and the variants (InputError) and find the fusions ``out/results.jsonl`` lacks."""
+    from .batch import ResultsLog
+
+    if not params and not variants:
+        raise InputError("give at least one --param NAME=V1,V2,... or --variant")
+    parsed = parse_variants(variants)
+    grid: dict[str, list] = {"variant": list(parsed)} if parsed else {}
+    if params:
+        grid.update(parse_grid(params))
+    plan = SweepPlan(scenarios, grid, parsed, Path(out) / "results.jsonl")
+    done = ResultsLog(plan.results_path).done(row_key)
+    for sc in scenarios:
+        todo = [p for p in grid_points(grid) if row_key({"scenario": sc.name, "params": p}) not in done]
+        if todo:
+            plan.jobs.append((sc, todo, parsed))
+    return plan
+
+
+def run_sweep(plan: SweepPlan, workers: int, scheduler: str | None = None,
+              on_row: Callable[[dict], None] | None = None) -> tuple[dict[str, dict], int]:
+    """Run the plan's jobs (each finished row appended at once); returns the mean-ATE table over
+    every row of the plan's scenarios and the number of simulations this call made."""
+    from .batch import ResultsLog, run_tasks
+
+    results = ResultsLog(plan.results_path)
+    sims = 0
+
+    def finished(job, rows):
+        nonlocal sims
+        for row in rows:
+            sims += bool(row.get("simulated"))
+            results.append(row)
+            if on_row is not None:
+                on_row(row)
+
+    def failed(job, err):
+        finished(job, [{"scenario": job[0].name, "seed": job[0].seed, "params": p, **err} for p in job[1]])
+
+    run_tasks(plan.jobs, sweep_task, workers=workers, on_rows=finished, on_failure=failed, scheduler=scheduler)
+    names = {sc.name for sc in plan.scenarios}
+    rows = [r for r in results.latest(row_key).values() if r.get("scenario") in names]
+    return mean_ate_table(rows, plan.grid), sims

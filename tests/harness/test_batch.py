@@ -8,7 +8,7 @@ import signal
 
 import pytest
 
-from sim.batch import ResultsLog, run_logged, run_many, run_one
+from mapfusion.harness.batch import ResultsLog, run_logged, run_many, run_one
 from sim.scenario import scenario_from_dict
 
 pytestmark = pytest.mark.sumo
@@ -79,7 +79,7 @@ def test_without_a_scheduler_dask_is_not_imported():
     import subprocess
     import sys
 
-    code = ("import sys; from sim.batch import run_many; from sim.scenario import scenario_from_dict; "
+    code = ("import sys; from mapfusion.harness.batch import run_many; from sim.scenario import scenario_from_dict; "
             "sc = scenario_from_dict({'name': 'x', 'map': 'no-such-map.osm'}, 't', resolve=False); "
             "run_many([sc], workers=1); print('dask' in sys.modules, 'distributed' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

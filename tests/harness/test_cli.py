@@ -11,7 +11,7 @@ import sys
 import pytest
 from typer.testing import CliRunner
 
-from mapfusion.cli import app
+from mapfusion.harness.cli import app
 from tests.helpers import MAPS
 
 runner = CliRunner()
@@ -61,7 +61,7 @@ def test_bad_input_exits_2(args, needle, tmp_path, monkeypatch):
 def test_console_script_bad_file_one_line(tmp_path):
     bad = tmp_path / "broken.osm.pbf"
     bad.write_bytes((MAPS / "kotka.osm.pbf").read_bytes()[:5000])
-    p = subprocess.run([sys.executable, "-m", "mapfusion.cli", "maps", "build", str(bad)],
+    p = subprocess.run([sys.executable, "-m", "mapfusion.harness.cli", "maps", "build", str(bad)],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 2
     lines = p.stderr.strip().splitlines()
@@ -140,7 +140,7 @@ def test_fuse_writes_an_estimate_near_the_truth(sim_run, tmp_path):
 @pytest.mark.sumo
 def test_fuse_reads_kitti_camera_poses(sim_run, tmp_path):
     from mapfusion.formats import read_tum, tum_to_matrices
-    from mapfusion.runner import body_to_camera
+    from mapfusion.replay import body_to_camera
 
     t, xyz, q = read_tum(sim_run / "odometry.tum")
     cam = body_to_camera(tum_to_matrices(xyz, q))
@@ -186,7 +186,7 @@ def test_fuse_no_map_adds_no_priors(sim_run, tmp_path):
 
 
 def test_camera_body_round_trip():
-    from mapfusion.runner import body_to_camera, camera_to_body
+    from mapfusion.replay import body_to_camera, camera_to_body
 
     rng = np.random.default_rng(0)
     from scipy.spatial.transform import Rotation
@@ -304,7 +304,7 @@ def test_table_one_has_sequences_as_columns():
 
     from rich.console import Console
 
-    from mapfusion.cli import _table_one
+    from mapfusion.harness.tables import table_one
 
     def row(seq, weather, seed, o, m, deloc_o=False):
         return {"scenario": f"kitti-{seq}-{weather}-vo-s{seed}", "recorded": f"/d/kitti/{seq}", "odometry": "vo",
@@ -315,7 +315,7 @@ def test_table_one_has_sequences_as_columns():
             {"scenario": "kitti-05-rain-vo-s1", "recorded": "/d/kitti/05", "odometry": "vo", "weather": "rain",
              "error": "boom"}, row("00", "rain", 1, 9.0, 3.0)]
     buf = StringIO()
-    Console(file=buf, width=200).print(_table_one(rows, "t"))
+    Console(file=buf, width=200).print(table_one(rows, "t"))
     lines = {ln.split("│")[1].strip(): [c.strip() for c in ln.split("│")[2:-1]] for ln in buf.getvalue().splitlines()
              if ln.startswith("│")}
     assert lines["VO clear"] == ["3.00", "x", "3.00"]  # the mean over seeds; de-localised cells left out of Avg
@@ -330,13 +330,13 @@ def test_paper_table_turns_when_the_runs_do_not_fit(n, width, turned):
 
     from rich.console import Console
 
-    from mapfusion.cli import _paper_table
+    from mapfusion.harness.tables import paper_table
 
     rows = [{"scenario": f"fam-helsinki-vo-s{i}", "ate_odometry_m": 4.0 + i, "ate_mapfusion_m": 2.0,
              "ate_reduction_m": 2.0 + i, "delocalized_odometry": False, "delocalized_mapfusion": i == 1}
             for i in range(n)]
     buf = StringIO()
-    Console(file=buf, width=width).print(_paper_table(rows, "t", strip_prefix="fam-", width=width))
+    Console(file=buf, width=width).print(paper_table(rows, "t", strip_prefix="fam-", width=width))
     text = buf.getvalue()
     assert all(len(ln) <= width for ln in text.splitlines())
     cells = {ln.split("│")[1].strip(): [c.strip() for c in ln.split("│")[2:-1]] for ln in text.splitlines()

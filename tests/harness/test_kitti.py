@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from mapfusion.cli import app
+from mapfusion.harness.cli import app
 from mapfusion.formats import FormatError
 from mapfusion.kitti import filled_points, georeference, read_kml_track
 
@@ -122,7 +122,7 @@ def test_noise_free_odometry_reproduces_the_truth(seq):
     from mapfusion.formats import GpsFixes, read_kitti_poses, read_times
     from mapfusion.kitti import import_kitti
     from mapfusion.metrics import ate
-    from mapfusion.runner import camera_to_body, fuse
+    from mapfusion.replay import camera_to_body, fuse
 
     d = Path(DATA) / "kitti" / seq
     road = RoadMap.from_osm(d / "map.osm")

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 import json
 
 import pytest
 from typer.testing import CliRunner
 
-from mapfusion.cli import app
+from mapfusion.harness.cli import app
 
 pytestmark = pytest.mark.sumo
 runner = CliRunner()
@@ -69,7 +71,7 @@ def test_sweep_variants_are_named_configurations(tmp_path):
 
 def test_parse_variants_faithful_is_the_papers_reading():
     from mapfusion.config import FusionConfig
-    from sim.sweep import parse_variants, with_params
+    from mapfusion.harness.sweep import parse_variants, with_params
 
     v = parse_variants(["faithful", "defaults"])
     assert with_params(FusionConfig(), v["faithful"]) == FusionConfig.faithful()
@@ -116,16 +118,16 @@ def test_tune_bad_range_exits_2(tmp_path):
 
 
 def test_a_failing_grid_point_costs_only_itself(tmp_path, monkeypatch):
-    import sim.run
+    import mapfusion.harness.pipeline
 
-    real = sim.run.fuse_and_evaluate
+    real = mapfusion.harness.pipeline.fuse_and_evaluate
 
     def flaky(simulation, cfg, baseline=None):
         if cfg.lane_width_m == 2.0:
             raise IndexError("boom at 2 m")
         return real(simulation, cfg, baseline)
 
-    monkeypatch.setattr(sim.run, "fuse_and_evaluate", flaky)  # the forked worker inherits it
+    monkeypatch.setattr(mapfusion.harness.pipeline, "fuse_and_evaluate", flaky)  # the forked worker inherits it
     out = tmp_path / "sf"
     r = runner.invoke(app, ["sweep", str(_family(tmp_path, "1")), "-p", "lane_width_m=2,3", "--out", str(out),
                             "--workers", "1"])
@@ -134,3 +136,24 @@ def test_a_failing_grid_point_costs_only_itself(tmp_path, monkeypatch):
     assert rows[2.0]["error"] == "IndexError: boom at 2 m" and "traceback" in rows[2.0]
     assert "error" not in rows[3.0] and rows[3.0]["ate_mapfusion_m"] > 0
 
+
+def test_the_baseline_ignores_the_map_only_fields(tmp_path):
+    from mapfusion.config import FusionConfig, PriorMode
+    from mapfusion.engine import MapFusion
+    from mapfusion.harness.sweep import MAP_ONLY_FIELDS, _baseline_key
+    from tests.mapfusion.test_engine import _biased_straight_drive, _feed, _online_xy
+
+    road, truth, odo, gt, gxy = _biased_straight_drive(tmp_path)
+    changed = dict(angle_weight_m_per_deg=3.0, search_radius_m=7.0, prior_mode=PriorMode.paper,
+                   prior_lambda_floor_m2=1.0, robust_kernel="cauchy", robust_k=3.0, match_continuity=True,
+                   prior_max_angle_deg=90.0, prior_ambiguity_m=0.0, prior_on_joins=True, continuity_slack_m=1.0,
+                   prior_gate_sigma=2.0)
+    assert set(changed) == MAP_ONLY_FIELDS
+    base = FusionConfig(use_map=False)
+    other = FusionConfig(use_map=False, **{k: (v if k != "robust_kernel" else type(base.robust_kernel)(v))
+                                           for k, v in changed.items()})
+    assert _baseline_key(base) == _baseline_key(other)
+    assert _baseline_key(base) != _baseline_key(FusionConfig(use_map=False, lane_width_m=2.0))
+    a = _online_xy(_feed(MapFusion(road, base), road, truth.t_s, odo, gt, gxy, sigma=1.0))[1]
+    b = _online_xy(_feed(MapFusion(road, other), road, truth.t_s, odo, gt, gxy, sigma=1.0))[1]
+    np.testing.assert_array_equal(a, b)

@@ -14,7 +14,7 @@ from mapfusion import RoadMap, RoadMapConfig
 from mapfusion.config import Backend, FusionConfig, PriorMode, ScaleFormula
 from mapfusion.engine import EngineError, MapFusion
 from mapfusion.initialisation import ScaleEstimator, heading_offset, window_counts
-from mapfusion.prior import information, prior_sqrt_information, world_covariance
+from mapfusion.factors import information, prior_sqrt_information, world_covariance
 from mapfusion.geometry import point_segment_distance
 from tests.helpers import MAPS, straight_road, synthetic_truth, write_osm
 
@@ -22,9 +22,7 @@ ORIGIN = (60.2, 24.9)
 
 
 def _poses(truth) -> np.ndarray:
-    from sim.sensors import truth_poses
-
-    return truth_poses(truth)
+    return truth.poses()
 
 
 def _feed(eng: MapFusion, road: RoadMap, t, odo_poses, gps_t, gps_xy, sigma=2.0):
@@ -212,25 +210,6 @@ def test_prior_gate_rejects_corrections_beyond_the_estimates_uncertainty(tmp_pat
     # a gate far wider than any correction changes nothing
     assert runs[1000.0][0].map_priors == runs[0.0][0].map_priors
     np.testing.assert_allclose(runs[1000.0][1], runs[0.0][1])
-
-
-def test_the_baseline_ignores_the_map_only_fields(tmp_path):
-    from sim.sweep import MAP_ONLY_FIELDS, _baseline_key
-
-    road, truth, odo, gt, gxy = _biased_straight_drive(tmp_path)
-    changed = dict(angle_weight_m_per_deg=3.0, search_radius_m=7.0, prior_mode=PriorMode.paper,
-                   prior_lambda_floor_m2=1.0, robust_kernel="cauchy", robust_k=3.0, match_continuity=True,
-                   prior_max_angle_deg=90.0, prior_ambiguity_m=0.0, prior_on_joins=True, continuity_slack_m=1.0,
-                   prior_gate_sigma=2.0)
-    assert set(changed) == MAP_ONLY_FIELDS
-    base = FusionConfig(use_map=False)
-    other = FusionConfig(use_map=False, **{k: (v if k != "robust_kernel" else type(base.robust_kernel)(v))
-                                           for k, v in changed.items()})
-    assert _baseline_key(base) == _baseline_key(other)
-    assert _baseline_key(base) != _baseline_key(FusionConfig(use_map=False, lane_width_m=2.0))
-    a = _online_xy(_feed(MapFusion(road, base), road, truth.t_s, odo, gt, gxy, sigma=1.0))[1]
-    b = _online_xy(_feed(MapFusion(road, other), road, truth.t_s, odo, gt, gxy, sigma=1.0))[1]
-    np.testing.assert_array_equal(a, b)
 
 
 # ----------------------------------------------------------------------------- backends agree

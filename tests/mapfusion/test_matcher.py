@@ -13,7 +13,6 @@ from hypothesis import strategies as st
 from mapfusion import RoadMap, RoadMapConfig
 from mapfusion.geometry import point_segment_distance
 from mapfusion.matcher import angle_deg, map_pose, match_candidates, quaternion_angle_deg
-from mapfusion.stress import JunctionKind, StressConfig, classify_junctions, run_stress, stress_poses
 from tests.helpers import MAPS, circle_road, polylines, straight_road, write_osm
 
 ORIGIN = (60.2, 24.9)
@@ -266,44 +265,3 @@ def test_map_pose_bad_pose():
 
 
 # --------------------------------------------------------------------------- stress test
-def test_stress_classifies_the_synthetic_junctions():
-    kinds = lambda name: set(classify_junctions(RoadMap.from_osm(MAPS / "synthetic" / f"{name}.osm")).values())  # noqa: E731
-    assert kinds("roundabout") == {JunctionKind.roundabout}
-    assert kinds("y-split") == {JunctionKind.y_split}
-    assert JunctionKind.parallel in kinds("parallel")
-    assert {JunctionKind.T, JunctionKind.X}.issubset(kinds("grid"))
-
-
-@pytest.mark.parametrize("name", ["grid", "roundabout", "y-split", "parallel", "helsinki"])
-def test_stress_poses_respect_their_bounds(name):
-    road = RoadMap.from_osm(MAPS / ("helsinki.osm.pbf" if name == "helsinki" else f"synthetic/{name}.osm"))
-    cfg = StressConfig(offset_extra_m=2.0, heading_error_deg=15.0)
-    p = stress_poses(road, cfg)
-    assert len(p) > 0
-    offset = np.hypot(p.x_m - road.xy_m[p.station, 0], p.y_m - road.xy_m[p.station, 1])
-    assert np.all(offset <= road.width_m[p.station] + cfg.offset_extra_m + 1e-9)
-    assert np.all(angle_deg(p.yaw_rad, p.heading_rad) <= cfg.heading_error_deg + 1e-9)
-    assert np.all(p.way_id == road.way_id[p.station])
-    # stations lie on the approaches and exits: within the farthest station distance of their junction
-    d = np.hypot(*(road.xy_m[p.station] - road.vertex_xy_m[p.vertex]).T)
-    assert np.all(d <= max(cfg.distances_m) + 1.0)
-
-
-@pytest.mark.parametrize("name", ["grid", "roundabout", "y-split", "parallel"])
-def test_stress_stations_on_the_centreline_all_match(name):
-    # a pose exactly at its station with the road's heading has D = 0 there: it must match its way
-    road = RoadMap.from_osm(MAPS / "synthetic" / f"{name}.osm")
-    p = stress_poses(road, StressConfig())
-    res = road.match_many(road.xy_m[p.station, 0], road.xy_m[p.station, 1], p.heading_rad)
-    assert np.all(res["way_id"] == p.way_id)
-    assert np.all(res["cost"] <= 1e-5)  # arccos near 1 leaves ~1e-6° of rounding
-
-
-def test_stress_rates_are_fractions_and_reproducible():
-    road = RoadMap.from_osm(MAPS / "synthetic" / "grid.osm")
-    a = run_stress(road, StressConfig(seed=1))
-    b = run_stress(road, StressConfig(seed=1))
-    assert a.to_dict() == b.to_dict()
-    assert 0.0 <= a.rate <= 1.0
-    assert sum(k.poses for k in a.by_kind) == a.poses
-    assert sum(k.junctions for k in a.by_kind) == a.junctions

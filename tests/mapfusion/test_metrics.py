@@ -115,34 +115,6 @@ def test_match_rate():
     assert match_rate(np.array([-1, -1]), np.array([1, 2])) is None
 
 
-@pytest.mark.sumo
-def test_ate_equals_evo_on_a_simulated_run():
-    from mapfusion import RoadMap
-    from mapfusion.config import FusionConfig
-    from mapfusion.formats import GpsFixes
-    from mapfusion.metrics import associate
-    from mapfusion.runner import fuse
-    from sim.drive import run_drive
-    from sim.scenario import scenario_from_dict
-    from sim.sensors import Truth, synthesise
-
-    sc = scenario_from_dict({"name": "evo", "map": "grid", "seed": 4, "duration_s": 200.0, "min_route_m": 1000.0,
-                             "weather": {"kind": "rain"}}, "test")
-    road = RoadMap.from_osm(sc.map)
-    drive = run_drive(sc, road)
-    truth = Truth.from_track(drive.ego, gps=sc.gps)
-    sensors = synthesise(sc, truth)
-    lat, lon = road.projection.to_geo(sensors.gps.x_m, sensors.gps.y_m)
-    fixes = GpsFixes(sensors.gps.t_s, np.asarray(lat), np.asarray(lon), np.full(len(lat), np.nan), sensors.gps.sigma_m)
-    res = fuse(road, sensors.odometry.t_s, sensors.odometry.poses, fixes, FusionConfig())
-    ok = [i for i, p in enumerate(res.online) if p is not None]
-    est = np.array([[res.online[i].x(), res.online[i].y(), res.online[i].z()] for i in ok])
-    ia, ib = associate(res.t_s[ok], drive.ego.t_s)
-    gt = np.column_stack([drive.ego.x_m, drive.ego.y_m, drive.ego.z_m])[ib]
-    assert len(ia) > 500
-    assert ate(gt, est[ia]) == pytest.approx(_evo_ape(gt, est[ia]), abs=1e-6)
-
-
 def test_match_rate_counts_continuations_only_when_asked():
     cont = {10: {11}, 11: {10}}
     true = np.array([10, 10, 10, 12])

@@ -60,7 +60,8 @@ def test_graph_of_a_crossroads(tmp_path):
     # width = lanes × lane width, lanes missing → 1
     w = {int(road.way_ids[i]): road.way_lanes[i] for i in range(len(road.ways))}
     assert sorted(w.values()) == [1, 2]
-    assert set(np.unique(road.width_m)) == {3.0, 6.0}
+    assert set(np.unique(road.width_m(3.0))) == {3.0, 6.0}
+    assert set(np.unique(road.width_m(2.5))) == {2.5, 5.0}  # the lane width applies at match time
 
 
 def test_heading_is_towards_next_waypoint(tmp_path):

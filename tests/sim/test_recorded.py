@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from mapfusion.cli import app
+from mapfusion.harness.cli import app
 from mapfusion.errors import InputError
 from mapfusion.roadmap import RoadMap
 from sim.recorded import load_recorded, recorded_gps
@@ -79,7 +79,7 @@ def test_duration_cuts_the_recorded_drive():
 
 
 def test_a_kitti_run_end_to_end():
-    from sim.run import run_scenario
+    from mapfusion.harness.pipeline import run_scenario
 
     sc, _ = _kitti("07", weather={"kind": "rain"})
     m = run_scenario(sc, plot=False).metrics

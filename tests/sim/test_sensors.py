@@ -206,7 +206,7 @@ def test_imu_noise_density():
 def test_simulate_writes_sensor_files_identically_for_a_seed(tmp_path):
     from typer.testing import CliRunner
 
-    from mapfusion.cli import app
+    from mapfusion.harness.cli import app
 
     sc = tmp_path / "s.toml"
     sc.write_text('name = "s"\nmap = "tunnel"\nseed = 5\nduration_s = 150.0\n[weather]\nkind = "rain"\n'
