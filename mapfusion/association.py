@@ -17,8 +17,9 @@ import gtsam
 import numpy as np
 
 from . import factors
-from .config import FusionConfig
+from .config import FusionConfig, RoadTracking
 from .counters import Counters
+from .hypotheses import RoadHypotheses, Step, candidates
 from .matcher import Match, map_pose, match, match_candidates
 from .roadmap import RoadMap
 
@@ -33,10 +34,52 @@ class MapAssociation:
         self.edge = -1  # the road edge the vehicle was last matched to
         self._mask = np.zeros(len(road), dtype=bool)
         self._robust = factors.robust_kernel(cfg)
+        self.hmm = RoadHypotheses(road, cfg) if cfg.road_tracking is RoadTracking.hmm else None
+        self._moved_m = math.inf  # odometry distance since the last filter step (inf: step now)
+        self._last: Step | None = None
+        self._unexplained_m = 0.0
+        self.lost = False  # no hypothesis explains the estimate (hmm only)
 
     def reset(self) -> None:
         """Forget the last road (after a re-localisation)."""
         self.edge = -1
+        if self.hmm is not None:
+            self.hmm.reset()
+            self._moved_m, self._last, self._unexplained_m, self.lost = math.inf, None, 0.0, False
+
+    def _tracked_match(self, pred: gtsam.Pose3, moved_m: float) -> tuple[Match | None, bool]:
+        """The match on the most probable road of the hypotheses, and whether it is confident. The
+        filter steps once per ``hmm_step_m`` of odometry; in between the last step's road is used."""
+        assert self.hmm is not None
+        cfg, road = self.cfg, self.road
+        x, y, yaw = pred.x(), pred.y(), pred.rotation().yaw()
+        near = road.query_radius(x, y, cfg.search_radius_m)
+        self._moved_m += moved_m
+        if self._moved_m >= cfg.hmm_step_m:
+            step_m = 0.0 if self._moved_m == math.inf else self._moved_m
+            self._last = self.hmm.step(candidates(road, near, x, y, yaw, cfg.angle_weight_m_per_deg), step_m)
+            self._moved_m = 0.0
+            self._watch_lost(self._last, step_m)
+        st = self._last
+        if st is None or st.best is None:
+            return None, False
+        on_edge = near[road.edge[near] == st.best.edge]
+        if on_edge.size == 0:  # moved off that road since the last step
+            return None, False
+        m = match(road, x, y, yaw, cfg.search_radius_m, cfg.angle_weight_m_per_deg, candidates=on_edge)
+        return m, st.posterior >= cfg.hmm_min_posterior
+
+    def _watch_lost(self, st: Step, moved_m: float) -> None:
+        """Lost after ``hmm_lost_after_m`` of unexplained steps; found again at the next explained one."""
+        if st.explained:
+            self._unexplained_m, self.lost = 0.0, False
+            return
+        self._unexplained_m += moved_m
+        if not self.lost and self._unexplained_m >= self.cfg.hmm_lost_after_m:
+            self.lost = True
+            self.counters.lost_events += 1
+            assert self.hmm is not None
+            self.hmm.reset()
 
     def match(self, pred: gtsam.Pose3) -> Match | None:
         """The best way-point for a predicted pose (with continuity: among the roads joined to the
@@ -88,7 +131,10 @@ class MapAssociation:
     def prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3, dt_s: float, pos_sigma_m: float
               ) -> tuple[Match | None, gtsam.PriorFactorPose3 | None]:
         """The match of frame k's predicted pose and, if the map should correct it, its prior."""
-        m = self.match(pred)
+        if self.hmm is not None:
+            m, confident = self._tracked_match(pred, math.hypot(step.x(), step.y()))
+        else:
+            m, confident = self.match(pred), False
         if m is None:
             return None, None
         self.counters.matches += 1
@@ -96,7 +142,11 @@ class MapAssociation:
         r_pose, lateral = map_pose(m, pred)
         if lateral <= width:
             return m, None
-        if self.gated(m, pred, lateral, width, pos_sigma_m):
+        # a confident road hypothesis replaces the single-frame gates: its heading is a valid
+        # measurement even when the estimate's is far off (heading recovery), and a split posterior
+        # (the ambiguity the gates guessed at) never reaches here
+        blocked = (not confident) if self.hmm is not None else self.gated(m, pred, lateral, width, pos_sigma_m)
+        if blocked:
             self.counters.priors_gated += 1
             return m, None
         v_lon, v_lat = step.x() / dt_s, step.y() / dt_s

@@ -209,6 +209,13 @@ class Factorization(str, enum.Enum):
     cholesky = "CHOLESKY"
 
 
+class RoadTracking(str, enum.Enum):
+    """How the engine decides which road a map prior comes from (DESIGN item 8)."""
+
+    single_frame = "single_frame"  # each frame's best match by D = E + w·A, with the gates (the paper)
+    hmm = "hmm"  # road hypotheses over time: an online HMM on the road graph (issue 16)
+
+
 @dataclass(frozen=True)
 class FusionConfig:
     """Parameters of the Map-Fusion engine; the ``[mapfusion]`` table of a scenario file."""
@@ -445,6 +452,28 @@ class FusionConfig:
         source="speed (mapfusion bench)",
     )
     factorization: Factorization = param(Factorization.qr, "QR or CHOLESKY for ISAM2.", source="DESIGN item 7")
+    road_tracking: RoadTracking = param(RoadTracking.single_frame, "single_frame (each frame's best match, with the "
+                                        "angle and ambiguity gates) or hmm (road hypotheses over time: a prior only "
+                                        "from a road whose posterior is at least hmm_min_posterior).",
+                                        source="DESIGN item 8; issue 16")
+    hmm_emission_scale_m: float = param(5.0, "The emission's log-likelihood is −D / this (D = E + w·A).", unit="m",
+                                        min=0.0, exclusive_min=True, source="issue 16; by measurement")
+    hmm_transition_scale_m: float = param(5.0, "β of Newson & Krumm: the transition's log-probability is "
+                                          "−|network distance − odometry distance| / β.", unit="m", min=0.0,
+                                          exclusive_min=True, source="Newson & Krumm 2009; by measurement")
+    hmm_jump_penalty: float = param(10.0, "Log-probability cost of a transition the road graph does not join (a "
+                                    "wrong history can still be left).", min=0.0, source="issue 16; by measurement")
+    hmm_beam: int = param(8, "Hypotheses kept after each step.", min=1, max=1000, source="issue 16; speed")
+    hmm_min_posterior: float = param(0.9, "A map prior comes only from a road with at least this posterior; below "
+                                     "it (junctions, parallel roads) no prior until it resolves.", min=0.0, max=1.0,
+                                     source="issue 16; by measurement")
+    hmm_step_m: float = param(5.0, "Odometry distance between two filter steps (between them the prior comes from "
+                              "the last step's road).", unit="m", min=0.0, exclusive_min=True, source="speed")
+    hmm_lost_cost_m: float = param(20.0, "A step is unexplained when every candidate's D exceeds this.", unit="m",
+                                   min=0.0, exclusive_min=True, source="issue 16 (divergence detection)")
+    hmm_lost_after_m: float = param(100.0, "The estimate is lost after this much driving with unexplained steps (or no "
+                                    "road in range).", unit="m", min=0.0, exclusive_min=True,
+                                    source="issue 16 (divergence detection)")
     relinearize_threshold: float = param(
         0.01,
         "ISAM2's relinearisation threshold (tangent-space step).",

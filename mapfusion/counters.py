@@ -23,6 +23,7 @@ class Counters:
     recoveries: int = 0
     gps_relocalisations: int = 0
     updates: int = 0
+    lost_events: int = 0  # road hypotheses: the estimate lost (issue 16)
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)

@@ -76,6 +76,7 @@ class MapFusion:
         self.alignment: Alignment | None = None
         self.initialised_at: float | None = None
         self.map_prior_frames: list[int] = []
+        self.lost_s = 0.0  # time the road hypotheses held the estimate lost (road_tracking = hmm)
         self.matched_way: list[int] = []  # OSM way the matcher chose at each frame (-1: none)
         self._association = MapAssociation(road, self.cfg, self.counters)
         self._gate = GpsGate(self.cfg)
@@ -264,6 +265,8 @@ class MapFusion:
         """Add the map prior on frame k if its predicted pose is off its road; True if added."""
         dt = self.track.t[k] - self.track.t[k - 1]
         m, prior = self._association.prior(k, pred, step, dt, self._pos_sigma)
+        if self._association.lost:
+            self.lost_s += dt
         if m is not None:
             self.matched_way[k] = m.way_id
         if prior is None:

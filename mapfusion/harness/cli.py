@@ -145,12 +145,16 @@ def maps_stress(
     angle_weight: Annotated[float, typer.Option("--angle-weight-m-per-deg", help="w in D = E + w·A, metres per degree.", min=0.0)] = 1.0,
     lane_width_m: Annotated[float, typer.Option(help="Lane width, metres (road width = lanes × lane width).")] = 3.0,
     seed: Annotated[int, typer.Option(help="Seed of offsets and heading errors.")] = 0,
+    sequence: Annotated[bool, typer.Option("--sequence", help="Also drive through every junction (every entering road "
+                                           "to every other road, errors correlated along the drive) and match the "
+                                           "drives as sequences with the road hypotheses (FusionConfig road_tracking = "
+                                           "hmm), beside the single-frame matcher on the same poses.")] = False,
 ) -> None:
     """Stress-test the road matcher around every junction; match rate overall and by junction kind."""
     from mapfusion.maps import resolve_map
     from mapfusion.roadmap import RoadMap
 
-    from .stress import StressConfig, run_stress
+    from .stress import StressConfig, run_sequence_stress, run_stress
 
     try:
         cfg = StressConfig(
@@ -166,11 +170,20 @@ def maps_stress(
         with err_console.status(f"matching poses around the junctions of {path.name} ..."):
             road = RoadMap.from_osm(path)
             result = run_stress(road, cfg)
+        seq = None
+        if sequence:
+            with err_console.status(f"driving through the junctions of {path.name} ..."):
+                seq = run_sequence_stress(road, cfg)
     except InputError as exc:
         _fail(str(exc))
     if as_json:
-        print(json.dumps(result.to_dict(), indent=2))
+        d = result.to_dict()
+        if seq is not None:  # the sequence figures lead; the station test stays under "stations"
+            d = {**seq.to_dict(), "stations": d}
+        print(json.dumps(d, indent=2))
         return
+    if seq is not None:
+        _print_sequence_stress(path.name, seq)
     t = Table(title=f"Matcher stress test: {path.name}")
     for col in ("junction kind", "junctions", "poses", "matched to their way"):
         t.add_column(col, justify="right")
@@ -182,6 +195,17 @@ def maps_stress(
         f"offsets up to road width + {offset_extra_m:g} m, heading errors up to ±{heading_error_deg:g}°, "
         f"D = E + {angle_weight:g}·A within {radius_m:g} m; {result.unmatched_none} poses had no way-point in range"
     )
+
+
+def _print_sequence_stress(name: str, seq) -> None:
+    t = Table(title=f"Junction drives: {name} (the same poses, single-frame and as sequences)")
+    for col in ("junction kind", "junctions", "drives", "poses", "single-frame", "sequence"):
+        t.add_column(col, justify="right")
+    for k in seq.by_kind:
+        t.add_row(k.kind, str(k.junctions), f"{k.drives:,}", f"{k.poses:,}", f"{100 * k.rate_single:.1f} %",
+                  f"{100 * k.rate:.1f} %")
+    t.add_row("all", "", "", f"{seq.poses:,}", f"{100 * seq.rate_single:.1f} %", f"{100 * seq.rate:.1f} %", style="bold")
+    console.print(t)
 
 
 @scenarios_app.command("generate")

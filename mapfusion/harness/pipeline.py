@@ -139,6 +139,7 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
         metrics.update({"map_priors": c.map_priors, "gps_used": c.gps_used,
                         "gps_rejected": c.gps_rejected_gate + c.gps_rejected_invalid,
                         "recoveries": c.recoveries, "gps_relocalisations": c.gps_relocalisations,
+                        "lost_events": c.lost_events, "lost_s": mf.engine.lost_s,
                         "scale": mf.engine.scale, "initialised_at_s": mf.engine.initialised_at})
     metrics["fusion_frames_per_s"] = fusion_fps
     return non_finite_to_none(metrics), base, mf

@@ -247,3 +247,156 @@ def run_stress(road: RoadMap, cfg: StressConfig = StressConfig()) -> StressResul
         unmatched_none=none,
         by_kind=tuple(by_kind),
     )
+
+
+# ----------------------------------------------------------------------------- sequences (--sequence)
+@dataclass(frozen=True)
+class SequenceConfig:
+    """Drives through junctions for the sequence stress test. Lengths in metres, angles in degrees."""
+
+    approach_m: float = 40.0
+    """Length driven on the entering road before the junction, and on the leaving road after it."""
+    sample_m: float = 2.0
+    """Distance between two matched poses of a drive."""
+    correlation_m: float = 30.0
+    """Correlation length of the offset and heading errors along a drive (a drifting odometry's errors
+    change slowly)."""
+    skip_near_vertex_m: float = 5.0
+    """Poses closer than this to the junction are not scored (inside it the way is a matter of definition)."""
+    warm_up_m: float = 10.0
+    """Poses in the first metres of a drive are not scored."""
+
+
+@dataclass(frozen=True)
+class SequenceKindResult:
+    kind: str
+    junctions: int
+    drives: int
+    poses: int
+    matched: int
+    matched_single: int
+
+    @property
+    def rate(self) -> float:
+        return self.matched / self.poses if self.poses else float("nan")
+
+    @property
+    def rate_single(self) -> float:
+        return self.matched_single / self.poses if self.poses else float("nan")
+
+
+@dataclass(frozen=True)
+class SequenceResult:
+    map: str
+    by_kind: tuple[SequenceKindResult, ...]
+
+    @property
+    def poses(self) -> int:
+        return sum(k.poses for k in self.by_kind)
+
+    @property
+    def rate(self) -> float:
+        n = self.poses
+        return sum(k.matched for k in self.by_kind) / n if n else float("nan")
+
+    @property
+    def rate_single(self) -> float:
+        n = self.poses
+        return sum(k.matched_single for k in self.by_kind) / n if n else float("nan")
+
+    def to_dict(self) -> dict:
+        return {"map": self.map, "match_rate": self.rate, "match_rate_single": self.rate_single, "poses": self.poses,
+                "by_kind": {k.kind: {"junctions": k.junctions, "drives": k.drives, "poses": k.poses,
+                                     "match_rate": k.rate, "match_rate_single": k.rate_single} for k in self.by_kind}}
+
+
+def _towards(road: RoadMap, e: int, v: int, length_m: float) -> np.ndarray:
+    """Way-point indices of edge e within ``length_m`` of its end at vertex v, ordered towards v."""
+    a, b = int(road.edge_start[e]), int(road.edge_end[e])
+    idx = np.arange(a, b)
+    s = road.s_m[a:b].astype(float)
+    to_v = (float(road.edge_length_m[e]) - s) if int(road.edge_v[e]) == v else s
+    keep = to_v <= length_m
+    idx, to_v = idx[keep], to_v[keep]
+    return idx[np.argsort(-to_v)]
+
+
+def _correlated(rng: np.random.Generator, n: int, rho: float, sigma: float, bound: float) -> np.ndarray:
+    """AR(1) samples with stationary σ, clipped to ±bound."""
+    out = np.empty(n)
+    x = rng.normal(0.0, sigma)
+    for i in range(n):
+        out[i] = x
+        x = rho * x + math.sqrt(1.0 - rho * rho) * rng.normal(0.0, sigma)
+    return np.clip(out, -bound, bound)
+
+
+def run_sequence_stress(road: RoadMap, cfg: StressConfig = StressConfig(), seq: SequenceConfig = SequenceConfig(),
+                        fusion=None) -> SequenceResult:
+    """Drive through every junction from every entering road to every other road, with offset and
+    heading errors correlated along the drive; match each drive as a sequence with the road
+    hypotheses (started on the entering road: the vehicle arrives localised) and pose by pose with
+    the single-frame matcher, and score both by junction kind."""
+    from mapfusion.config import FusionConfig
+    from mapfusion.hypotheses import RoadHypotheses, candidates
+
+    fusion = fusion or FusionConfig(search_radius_m=cfg.radius_m, angle_weight_m_per_deg=cfg.angle_weight_m_per_deg,
+                                    lane_width_m=cfg.lane_width_m)
+    rng = np.random.default_rng(cfg.seed)
+    kinds = classify_junctions(road, cfg)
+    ends = _edge_ends(road)
+    width = road.width_m(cfg.lane_width_m)
+    rho = math.exp(-seq.sample_m / seq.correlation_m)
+    tally: dict[str, list[int]] = {k.value: [0, 0, 0, 0] for k in JunctionKind}  # drives, poses, seq, single
+    hyp = RoadHypotheses(road, fusion)
+    for v in sorted(kinds):
+        inc = [e for e, _ in ends[v]]
+        for e_in in inc:
+            for e_out in inc:
+                if e_out == e_in:
+                    continue
+                path = np.concatenate([_towards(road, e_in, v, seq.approach_m),
+                                       _towards(road, e_out, v, seq.approach_m)[::-1]])
+                true_edge = road.edge[path]
+                # resample at sample_m along the path
+                step = np.hypot(*np.diff(road.xy_m[path], axis=0).T)
+                s = np.concatenate([[0.0], np.cumsum(step)])
+                if s[-1] < 2 * seq.warm_up_m:
+                    continue
+                pick = np.searchsorted(s, np.arange(0.0, s[-1], seq.sample_m))
+                pick = np.minimum(pick, len(path) - 2)
+                p, nxt = path[pick], path[pick + 1]
+                heading = np.arctan2(road.xy_m[nxt, 1] - road.xy_m[p, 1], road.xy_m[nxt, 0] - road.xy_m[p, 0])
+                n = len(p)
+                off = _correlated(rng, n, rho, 0.5 * (width[p].max() + cfg.offset_extra_m),
+                                  float(width[p].max() + cfg.offset_extra_m))
+                err = np.radians(_correlated(rng, n, rho, 0.5 * cfg.heading_error_deg, cfg.heading_error_deg))
+                x = road.xy_m[p, 0] - np.sin(heading) * off
+                y = road.xy_m[p, 1] + np.cos(heading) * off
+                yaw = heading + err
+                single = road.match_many(x, y, yaw, cfg.radius_m, cfg.angle_weight_m_per_deg)
+                dist_v = np.hypot(road.xy_m[p, 0] - road.vertex_xy_m[v, 0], road.xy_m[p, 1] - road.vertex_xy_m[v, 1])
+                true_way = road.way_ids[road.edge_way_index[true_edge[pick]]]
+                # the drive arrives localised: the filter starts on the entering road, as a tracker
+                # that followed the vehicle there would; what is tested is the way out of the junction
+                d_in = 1 if int(road.edge_v[e_in]) == v else -1
+                hyp.start_on(e_in, d_in, float(road.s_m[p[0]]))
+                t = tally[kinds[v].value]
+                t[0] += 1
+                for i in range(n):
+                    near = road.query_radius(float(x[i]), float(y[i]), cfg.radius_m)
+                    st = hyp.step(candidates(road, near, float(x[i]), float(y[i]), float(yaw[i]),
+                                             cfg.angle_weight_m_per_deg), seq.sample_m if i else 0.0)
+                    if i * seq.sample_m < seq.warm_up_m or dist_v[i] < seq.skip_near_vertex_m:
+                        continue
+                    t[1] += 1
+                    got = -1 if st.best is None else int(road.way_ids[road.edge_way_index[st.best.edge]])
+                    t[2] += int(got == true_way[i])
+                    t[3] += int(single["way_id"][i] == true_way[i])
+    by_kind = []
+    for k in JunctionKind:
+        nj = sum(1 for kk in kinds.values() if kk is k)
+        if nj:
+            d, n_poses, ok, ok1 = tally[k.value]
+            by_kind.append(SequenceKindResult(k.value, nj, d, n_poses, ok, ok1))
+    return SequenceResult(road.source, tuple(by_kind))

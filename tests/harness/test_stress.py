@@ -52,3 +52,20 @@ def test_stress_rates_are_fractions_and_reproducible():
     assert 0.0 <= a.rate <= 1.0
     assert sum(k.poses for k in a.by_kind) == a.poses
     assert sum(k.junctions for k in a.by_kind) == a.junctions
+
+
+def test_sequence_stress_json_and_the_sequence_beats_single_frames_at_a_y_split():
+    import json
+
+    from typer.testing import CliRunner
+
+    from mapfusion.harness.cli import app
+
+    r = CliRunner().invoke(app, ["maps", "stress", str(MAPS / "synthetic" / "y-split.osm"), "--sequence", "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.output)
+    assert {"match_rate", "match_rate_single", "by_kind", "stations"} <= set(d)
+    assert d["poses"] > 100 and set(d["by_kind"]) == {"y-split"}
+    # the same poses: the filter, started on the entering road, picks the exit road at least as well
+    assert d["match_rate"] >= d["match_rate_single"] and d["match_rate"] >= 0.99
+    assert d["stations"]["match_rate"] == pytest.approx(run_stress(RoadMap.from_osm(MAPS / "synthetic" / "y-split.osm")).rate)

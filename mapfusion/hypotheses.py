@@ -1,0 +1,152 @@
+"""Which road the vehicle is on, as a hidden state over time (DESIGN item 8): an online hidden
+Markov model over the road graph's edges and travel directions.
+
+At every step the candidates are the (edge, direction) pairs with a way-point within the search
+radius of the predicted pose. A candidate's emission is the paper's matching cost taken as a
+negative log-likelihood, −D / ``hmm_emission_scale_m`` with D = E + w·A for the candidate's best
+way-point in its own direction. Transitions follow Newson & Krumm (2009): the network distance
+between the previous hypothesis and the candidate, along the edge or through the vertex the
+previous edge leads to, should equal the distance the odometry moved; the log-probability is
+−|d_network − d_odometry| / ``hmm_transition_scale_m``. A jump the graph does not join costs
+``hmm_jump_penalty`` (so a wrong history can still be left). The forward filter keeps the
+``hmm_beam`` most probable hypotheses, normalised to a posterior that sums to one.
+
+The engine asks for a map prior only from the most probable road, and only when its posterior
+is at least ``hmm_min_posterior``: at a junction, beside a parallel road or above a tunnel the
+posterior is split and no prior is added until it resolves. The hypotheses also say when the
+estimate is *lost*: no candidate in range, or every candidate's D above ``hmm_lost_cost_m``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import FusionConfig
+from .roadmap import RoadMap
+
+Key = tuple[int, int]  # (edge, direction: +1 along the drawing direction, −1 against it)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One (edge, direction) in range: its best way-point, cost D and position along the edge."""
+
+    edge: int
+    direction: int
+    index: int  # way-point index
+    cost: float  # D = E + w·A in this direction
+    along_m: float  # s of the way-point along the edge (drawing direction)
+
+
+@dataclass(frozen=True)
+class Step:
+    """The filter's answer at one step."""
+
+    best: Candidate | None  # the most probable road, or None without candidates
+    posterior: float  # its posterior probability
+    hypotheses: int  # how many the beam holds
+    explained: bool  # some candidate's D is under hmm_lost_cost_m
+
+
+def candidates(road: RoadMap, near: np.ndarray, x: float, y: float, yaw: float, w: float) -> list[Candidate]:
+    """The best way-point of every (edge, direction) among the way-point indices ``near``
+    (join curves are not edges and are left out)."""
+    idx = near[~road.is_join[near]]
+    if idx.size == 0:
+        return []
+    e = np.hypot(road.xy_m[idx, 0] - x, road.xy_m[idx, 1] - y)
+    cos_d = np.clip(road.yaw_cos[idx] * math.cos(yaw) + road.yaw_sin[idx] * math.sin(yaw), -1.0, 1.0)
+    a_fwd = np.degrees(np.arccos(cos_d))  # angle to the drawing direction, [0, 180]
+    edges = road.edge[idx]
+    out = []
+    for direction, a in ((1, a_fwd), (-1, 180.0 - a_fwd)):
+        d = e + w * a
+        order = np.lexsort((d, edges))  # by edge, then cost: the first of each edge is its best
+        first = np.ones(order.size, dtype=bool)
+        first[1:] = edges[order][1:] != edges[order][:-1]
+        for j in order[first]:
+            i = int(idx[j])
+            out.append(Candidate(int(edges[j]), direction, i, float(d[j]), float(road.s_m[i])))
+    return out
+
+
+class RoadHypotheses:
+    """The forward filter over (edge, direction) hypotheses."""
+
+    def __init__(self, road: RoadMap, cfg: FusionConfig) -> None:
+        self.road = road
+        self.cfg = cfg
+        self.logp: dict[Key, float] = {}
+        self.along: dict[Key, float] = {}
+        self._len = road.edge_length_m
+        self._u, self._v = road.edge_u, road.edge_v
+
+    def reset(self) -> None:
+        """Forget every hypothesis (after a re-localisation, or when lost)."""
+        self.logp.clear()
+        self.along.clear()
+
+    def start_on(self, edge: int, direction: int, along_m: float) -> None:
+        """Start from a known road (a tracker that arrives localised)."""
+        self.logp = {(edge, direction): 0.0}
+        self.along = {(edge, direction): along_m}
+
+    def posterior(self) -> dict[Key, float]:
+        """The hypotheses' probabilities (they sum to one)."""
+        return {k: math.exp(v) for k, v in self.logp.items()}
+
+    def _exit_vertex(self, key: Key) -> int:
+        return int(self._v[key[0]] if key[1] > 0 else self._u[key[0]])
+
+    def _network_m(self, prev: Key, s_prev: float, c: Candidate) -> float | None:
+        """Distance along the graph from a position on ``prev`` to the candidate, travelling in
+        each one's direction: along the same edge, or through the vertex ``prev`` leads to."""
+        e0, d0 = prev
+        if c.edge == e0 and c.direction == d0:
+            return (c.along_m - s_prev) * d0
+        v = self._exit_vertex(prev)
+        enters = (c.direction > 0 and int(self._u[c.edge]) == v) or (c.direction < 0 and int(self._v[c.edge]) == v)
+        if not enters or c.edge == e0:
+            return None
+        rest = (self._len[e0] - s_prev) if d0 > 0 else s_prev
+        into = c.along_m if c.direction > 0 else self._len[c.edge] - c.along_m
+        return float(rest + into)
+
+    def step(self, cands: list[Candidate], moved_m: float) -> Step:
+        """One forward step with the candidates at the new pose and the odometry's distance since
+        the last step."""
+        cfg = self.cfg
+        if not cands:
+            self.reset()
+            return Step(None, 0.0, 0, False)
+        emission = {(c.edge, c.direction): -c.cost / cfg.hmm_emission_scale_m for c in cands}
+        new: dict[Key, float] = {}
+        for c in cands:
+            key = (c.edge, c.direction)
+            if not self.logp:
+                new[key] = emission[key]
+                continue
+            terms = []
+            for prev, lp in self.logp.items():
+                d = self._network_m(prev, self.along[prev], c)
+                trans = -cfg.hmm_jump_penalty if d is None else -abs(d - moved_m) / cfg.hmm_transition_scale_m
+                terms.append(lp + trans)
+            new[key] = emission[key] + _logsumexp(terms)
+        keep = sorted(new, key=lambda k: new[k], reverse=True)[: cfg.hmm_beam]
+        norm = _logsumexp([new[k] for k in keep])
+        self.logp = {k: new[k] - norm for k in keep}
+        by_key = {(c.edge, c.direction): c for c in cands}
+        self.along = {k: by_key[k].along_m for k in keep}
+        best = by_key[keep[0]]
+        explained = min(c.cost for c in cands) <= cfg.hmm_lost_cost_m
+        return Step(best, math.exp(self.logp[keep[0]]), len(keep), explained)
+
+
+def _logsumexp(values: list[float]) -> float:
+    m = max(values)
+    if m == -math.inf:
+        return m
+    return m + math.log(sum(math.exp(v - m) for v in values))

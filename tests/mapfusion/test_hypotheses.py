@@ -1,0 +1,145 @@
+"""Road hypotheses (the online HMM on the road graph): a posterior that sums to one, the
+single-frame match where nothing is ambiguous, and the right exit road after a junction."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapfusion import RoadMap
+from mapfusion.config import FusionConfig, RoadTracking
+from mapfusion.hypotheses import RoadHypotheses, candidates
+from mapfusion.matcher import match
+from tests.helpers import MAPS, straight_road, write_osm
+
+GRID = RoadMap.from_osm(MAPS / "synthetic" / "grid.osm")
+CFG = FusionConfig(road_tracking=RoadTracking.hmm)
+
+
+def _step(h: RoadHypotheses, road: RoadMap, x: float, y: float, yaw: float, moved: float):
+    near = road.query_radius(x, y, CFG.search_radius_m)
+    return h.step(candidates(road, near, x, y, yaw, CFG.angle_weight_m_per_deg), moved)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 40), noise=st.floats(0.0, 8.0))
+def test_the_posterior_sums_to_one(seed, n, noise):
+    rng = np.random.default_rng(seed)
+    h = RoadHypotheses(GRID, CFG)
+    i = int(rng.integers(len(GRID)))
+    x, y, yaw = *GRID.xy_m[i], float(GRID.yaw_rad[i])
+    for _ in range(n):
+        st_ = _step(h, GRID, x + rng.normal(0, noise), y + rng.normal(0, noise), yaw + rng.normal(0, 0.2), 5.0)
+        post = h.posterior()
+        if st_.best is not None:
+            assert math.isclose(sum(post.values()), 1.0, rel_tol=1e-9)
+            assert 0.0 < st_.posterior <= 1.0 + 1e-12 and len(post) <= CFG.hmm_beam
+        x, y = x + 5.0 * math.cos(yaw), y + 5.0 * math.sin(yaw)
+
+
+@pytest.fixture(scope="module")
+def lone_road(tmp_path_factory):
+    p = write_osm(tmp_path_factory.mktemp("lone"), [(straight_road(2000.0, 0.3, (-900.0, -300.0)), {"highway": "primary"})])
+    return RoadMap.from_osm(p, cache=False)
+
+
+@settings(max_examples=40, deadline=None)
+@given(along=st.floats(150.0, 1850.0), offset=st.floats(-6.0, 6.0), yaw_err=st.floats(-0.5, 0.5),
+       backwards=st.booleans(), steps=st.integers(1, 20))
+def test_on_a_lone_road_it_is_the_single_frame_match(lone_road, along, offset, yaw_err, backwards, steps):
+    road = lone_road
+    h = RoadHypotheses(road, CFG)
+    (x0, y0), road_yaw = road.xy_m[0], float(road.yaw_rad[0])
+    heading = road_yaw + (math.pi if backwards else 0.0)
+    d = 5.0 * (-1.0 if backwards else 1.0)
+    for k in range(steps):
+        s = along + k * d
+        x = x0 + s * math.cos(road_yaw) - offset * math.sin(road_yaw)
+        y = y0 + s * math.sin(road_yaw) + offset * math.cos(road_yaw)
+        st_ = _step(h, road, x, y, heading + yaw_err, 5.0)
+    m = match(road, x, y, heading + yaw_err, CFG.search_radius_m, CFG.angle_weight_m_per_deg)
+    assert st_.best is not None and m is not None
+    assert st_.best.edge == m.edge and st_.best.index == m.index
+    assert (st_.best.direction < 0) == m.reversed
+    assert st_.posterior == pytest.approx(1.0)  # one road, one direction that explains the heading
+
+
+def _junction_drives(road: RoadMap):
+    """(vertex, entering edge, leaving edge) of every junction of the grid."""
+    ends: dict[int, list[int]] = {}
+    for e in range(len(road.edge_u)):
+        ends.setdefault(int(road.edge_u[e]), []).append(e)
+        ends.setdefault(int(road.edge_v[e]), []).append(e)
+    return [(v, a, b) for v, es in ends.items() if road.vertex_degree[v] >= 3 for a in es for b in es if a != b]
+
+
+def _ordered(road: RoadMap, e: int, v: int, towards: bool) -> np.ndarray:
+    """Way-points of edge e ordered towards (or away from) its end v, leaving out the 15 m at its
+    other end: the drive must be on this edge, not at the next junction."""
+    idx = np.arange(road.edge_start[e], road.edge_end[e])
+    from_v = road.s_m[idx] if road.edge_u[e] == v else road.edge_length_m[e] - road.s_m[idx]
+    idx = idx[from_v <= road.edge_length_m[e] - 15.0]
+    idx = idx[np.argsort(-from_v[from_v <= road.edge_length_m[e] - 15.0])]  # now ordered towards v
+    return idx if towards else idx[::-1]
+
+
+DRIVES = _junction_drives(GRID)
+
+
+@settings(max_examples=60, deadline=None)
+@given(pick=st.integers(0, len(DRIVES) - 1), seed=st.integers(0, 1000), offset=st.floats(0.0, 1.5),
+       yaw_err=st.floats(0.0, 5.0))
+def test_a_drive_through_a_junction_ends_on_the_true_exit_road(pick, seed, offset, yaw_err):
+    v, e_in, e_out = DRIVES[pick]
+    road = GRID
+    path = np.concatenate([_ordered(road, e_in, v, True)[-60:], _ordered(road, e_out, v, False)[:60]])
+    rng = np.random.default_rng(seed)
+    h = RoadHypotheses(road, CFG)
+    prev = None
+    for j in range(0, len(path) - 1, 3):
+        i, nxt = path[j], path[j + 1]
+        heading = math.atan2(road.xy_m[nxt, 1] - road.xy_m[i, 1], road.xy_m[nxt, 0] - road.xy_m[i, 0])
+        o = rng.uniform(-offset, offset)
+        x, y = road.xy_m[i, 0] - math.sin(heading) * o, road.xy_m[i, 1] + math.cos(heading) * o
+        moved = 0.0 if prev is None else float(np.hypot(*(road.xy_m[i] - road.xy_m[prev])))
+        st_ = _step(h, road, x, y, heading + math.radians(rng.uniform(-yaw_err, yaw_err)), moved)
+        prev = i
+    assert st_.best is not None and st_.best.edge == e_out
+    assert st_.posterior > 0.9
+
+
+def _drive_off_the_road(tmp_path, cfg: FusionConfig):
+    """GPS along a lone road for 120 s, then the odometry turns 90° and leaves the network for 600 m."""
+    from mapfusion import MapFusion
+
+    road = RoadMap.from_osm(write_osm(tmp_path, [(straight_road(3000.0, 0.0, (-1500.0, 0.0)), {"highway": "primary"})]),
+                            cache=False)
+    (x0, y0) = road.xy_m[0]
+    eng = MapFusion(road, cfg, gps_rate_hz=1.0, odometry_rate_hz=10.0)
+    for k in range(2100):
+        t = 0.1 * k
+        if k % 10 == 0 and t <= 120.0:
+            lat, lon = road.projection.to_geo(x0 + 100.0 + 10.0 * t, y0)
+            eng.add_gps(t, float(lat), float(lon), None, 1.0)
+        rel = np.eye(4)
+        rel[0, 3] = 0.0 if k == 0 else 1.0
+        if k == 1500:  # a 90° turn where there is no road
+            rel[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
+        eng.add_odometry(t, rel)
+    eng.finish()
+    return eng
+
+
+def test_leaving_the_network_is_a_lost_event(tmp_path):
+    eng = _drive_off_the_road(tmp_path, CFG)
+    assert eng.initialised
+    assert eng.counters.lost_events == 1
+    # lost from about hmm_lost_after_m past the point where no road explains the estimate
+    assert 10.0 < eng.lost_s < 60.0
+    (tmp_path / "single").mkdir()
+    single = _drive_off_the_road(tmp_path / "single", FusionConfig())
+    assert single.counters.lost_events == 0 and single.lost_s == 0.0  # the single-frame default never says so
