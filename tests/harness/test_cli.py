@@ -236,6 +236,20 @@ METRIC_KEYS = ("scenario", "seed", "map", "weather", "odometry", "gps_mode", "ro
                "tunnel_rmse_mapfusion_m", "match_rate", "map_priors", "fusion_frames_per_s")
 
 
+def test_the_results_record_owns_the_contracts_keys():
+    from mapfusion.harness.results import REQUIRED_KEYS, summarise
+
+    assert set(REQUIRED_KEYS) == set(METRIC_KEYS)
+    rows = [{"ate_odometry_m": 10.0, "ate_mapfusion_m": 2.0, "delocalized_odometry": False, "delocalized_mapfusion": False},
+            {"ate_odometry_m": 30.0, "ate_mapfusion_m": 4.0, "delocalized_odometry": True, "delocalized_mapfusion": False},
+            {"scenario": "x", "error": "boom"}]
+    s = summarise(rows)
+    assert (s.runs, s.failed, s.delocalized_odometry, s.delocalized_mapfusion) == (2, 1, 1, 0)
+    assert (s.mean_odometry_m, s.mean_mapfusion_m) == (20.0, 3.0)
+    # the paper's averages leave the de-localised runs out; the reduction needs both localised
+    assert (s.paper_odometry_m, s.paper_mapfusion_m, s.paper_reduction_m) == (10.0, 3.0, 8.0)
+
+
 @pytest.mark.sumo
 def test_run_writes_every_contract_file(tmp_path):
     sc = tmp_path / "s.toml"
@@ -251,6 +265,7 @@ def test_run_writes_every_contract_file(tmp_path):
     metrics = json.loads((out / "r1" / "metrics.json").read_text())
     for k in METRIC_KEYS:
         assert k in metrics, k
+    assert metrics["lost_events"] == 0 and metrics["lost_s"] == 0.0  # the single-frame default never says lost
     lines = (out / "results.jsonl").read_text().splitlines()
     rows = [json.loads(line) for line in lines]  # whole lines, valid JSON
     by = {row["scenario"]: row for row in rows}  # lines in the order the runs finished
