@@ -21,7 +21,7 @@ import numpy as np
 from .formats import FormatError, write_gps_csv, write_tum
 from .metrics import umeyama
 from .projection import LocalProjection
-from .runner import R_BODY_CAMERA
+from .replay import R_BODY_CAMERA
 
 
 def read_kml_track(path: str | Path) -> np.ndarray:
