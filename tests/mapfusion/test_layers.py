@@ -129,3 +129,18 @@ def test_engine_parts_stay_small(path):
             assert span <= 300, f"{path.name}: class {node.name} has {span} lines besides its fields"
         elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
             assert span <= 60, f"{path.name}: {node.name} has {span} lines"
+
+
+def test_every_project_module_an_import_names_exists_in_this_tree():
+    """An import of a renamed module fails here even where a stale installation still provides it."""
+    files = ENGINE + SIM + sorted((REPO / "mapfusion" / "harness").glob("*.py"))
+    known = {_module(p) for p in files}
+    missing = []
+    for p in files:
+        for m in imports(p):
+            if m.split(".")[0] not in ("mapfusion", "sim"):
+                continue
+            # "from pkg import name" yields pkg.name too: a module, or a name defined in pkg
+            if m not in known and m.rpartition(".")[0] not in known:
+                missing.append(f"{p.relative_to(REPO)} imports {m}")
+    assert not missing, missing
