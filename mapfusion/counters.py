@@ -13,7 +13,8 @@ class Counters:
     odometry_rejected: int = 0
     gps_used: int = 0
     gps_rejected_gate: int = 0
-    gps_rejected_invalid: int = 0
+    gps_rejected_invalid: int = 0  # non-finite, or latitude/longitude out of range
+    gps_rejected_time: int = 0  # no odometry frame near its time (before the first, after the last, in a gap)
     gps_before_init: int = 0
     map_priors: int = 0
     priors_gated: int = 0
@@ -24,6 +25,11 @@ class Counters:
     gps_relocalisations: int = 0
     updates: int = 0
     lost_events: int = 0  # road hypotheses: the estimate lost (issue 16)
+
+    @property
+    def gps_rejected(self) -> int:
+        """Fixes not used, for any reason."""
+        return self.gps_rejected_gate + self.gps_rejected_invalid + self.gps_rejected_time
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)

@@ -179,8 +179,11 @@ class MapFusion:
         return {self.track.t[k]: pose for k, pose in sorted(out.items()) if pose is not None}
 
     def finish(self) -> None:
-        """Add what is still pending (call once after the last measurement)."""
+        """Add what is still pending (call once after the last measurement); fixes after the last
+        frame are counted as rejected for their time."""
         if self.initialised:
+            self.counters.gps_rejected_time += len(self._gps_wait)
+            self._gps_wait = []
             self._update()
 
     @property
@@ -310,7 +313,7 @@ class MapFusion:
                 continue
             k = track.frame_at(t)
             if abs(track.t[k] - t) > self.cfg.gps_max_frame_gap_s:
-                self.counters.gps_rejected_invalid += 1
+                self.counters.gps_rejected_time += 1
                 continue
             self._gate_and_add(k, *fix[1:])
         self._gps_wait = keep

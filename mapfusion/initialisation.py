@@ -293,6 +293,7 @@ def solve_initial_batch(cfg: FusionConfig, track: Track, alignment: Alignment, f
         values.insert(X(k), guesses[k])
     for t, x, y, sigma in fixes:
         if t < track.t[0] - 0.5 or t > track.t[-1] + 0.5:
+            counters.gps_rejected_time += 1  # before the first frame, or ahead of the odometry
             continue
         g = guesses[track.frame_at(t)]
         # the guess itself is uncertain by about twice a fix's σ (it was fitted on them)

@@ -385,7 +385,8 @@ def fuse(
     c = eng.counters
     console.print(f"{n:,} poses → {out}; scale {eng.scale:.4f} ± {eng.scale_sigma or 0:.4f}, "
                   f"initialised at t = {eng.initialised_at:.1f} s; map priors {c.map_priors}, GPS used {c.gps_used} "
-                  f"(rejected {c.gps_rejected_gate + c.gps_rejected_invalid}), odometry priors {c.odometry_priors}, "
+                  f"(rejected {c.gps_rejected}: {c.gps_rejected_gate} by the gate, {c.gps_rejected_time} for their time, "
+                  f"{c.gps_rejected_invalid} invalid), odometry priors {c.odometry_priors}, "
                   f"recoveries {c.recoveries}")
 
 

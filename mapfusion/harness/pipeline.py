@@ -137,7 +137,8 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
                 metrics["match_rate_road"] = match_rate(true_way[sel], matched[sel], road.continuations())
         c = mf.engine.counters
         metrics.update({"map_priors": c.map_priors, "gps_used": c.gps_used,
-                        "gps_rejected": c.gps_rejected_gate + c.gps_rejected_invalid,
+                        "gps_rejected": c.gps_rejected, "gps_rejected_gate": c.gps_rejected_gate,
+                        "gps_rejected_time": c.gps_rejected_time, "gps_rejected_invalid": c.gps_rejected_invalid,
                         "recoveries": c.recoveries, "gps_relocalisations": c.gps_relocalisations,
                         "lost_events": c.lost_events, "lost_s": mf.engine.lost_s,
                         "scale": mf.engine.scale, "initialised_at_s": mf.engine.initialised_at})

@@ -278,3 +278,34 @@ def test_heading_offset_from_dense_fixes(rot, speed, seed):
     got = heading_offset(gps, odo)
     assert got is not None
     assert abs(math.atan2(math.sin(got - rot), math.cos(got - rot))) < math.radians(1.0)
+
+
+def test_rejected_fixes_are_counted_by_reason(tmp_path):
+    """Gate, time and invalid rejections are counted apart (issue 16: fuse said only 'rejected')."""
+    road = RoadMap.from_osm(write_osm(tmp_path, [(straight_road(3000.0, 0.0, (-1500.0, 0.0)),
+                                                  {"highway": "primary"})], origin=ORIGIN), cache=False)
+    (x0, y0) = road.xy_m[0]
+    eng = MapFusion(road, FusionConfig(), gps_rate_hz=1.0, odometry_rate_hz=10.0)
+
+    def fix(t, x, y):
+        lat, lon = road.projection.to_geo(x, y)
+        eng.add_gps(t, float(lat), float(lon), None, 1.0)
+
+    fix(-5.0, x0, y0)  # before the first odometry frame: time
+    for k in range(1500):
+        t = 0.1 * k
+        if k % 10 == 0 and t <= 120.0:
+            fix(t, x0 + 100.0 + 10.0 * t, y0)
+        if k == 1300:
+            fix(t, x0 + 100.0 + 10.0 * t, y0 + 500.0)  # 500 m off: the gate
+            eng.add_gps(t, math.nan, 24.9)  # non-finite: invalid
+            eng.add_gps(t, 95.0, 24.9)  # latitude out of range: invalid
+        rel = np.eye(4)
+        rel[0, 3] = 0.0 if k == 0 else 1.0
+        eng.add_odometry(t, rel)
+    fix(500.0, x0, y0)  # long after the last frame: time
+    eng.finish()
+    c = eng.counters
+    assert eng.initialised
+    assert (c.gps_rejected_gate, c.gps_rejected_invalid, c.gps_rejected_time) == (1, 2, 2)
+    assert c.gps_rejected == 5 and c.gps_used >= 100
