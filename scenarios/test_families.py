@@ -19,8 +19,9 @@ from .conftest import FAMILIES, family_results, load_baselines
 
 pytestmark = pytest.mark.sumo
 
-FAMILY_NAMES = ("clear", "rain", "rain-tunnel", "heavy-rain", "intersections", "kitti")
-FULL_NAMES = tuple(f"{f}-full" for f in FAMILY_NAMES)  # the larger set: pytest -m full scenarios/
+FAMILY_NAMES = ("clear", "rain", "rain-tunnel", "heavy-rain", "intersections", "kitti", "kitti-real")
+# the larger set: pytest -m full scenarios/ (kitti-real has one run per real odometry result: no larger set)
+FULL_NAMES = tuple(f"{f}-full" for f in FAMILY_NAMES if (FAMILIES / f"{f}-full.toml").exists())
 
 
 def _runs():
@@ -92,3 +93,27 @@ def test_intersections_match_rate_at_least_97_percent(request):
         pytest.skip(f"{len(missing)} runs of the family need real data: {missing[0][1]}")
     rows = _ok(request, "intersections")
     assert np.mean([r["match_rate"] for r in rows]) >= 0.97
+
+
+def _real(request):
+    missing = load_family(FAMILIES / "kitti-real.toml").unavailable
+    if missing:
+        pytest.skip(f"the real odometry results need real data: {missing[0][1]}")
+    return _ok(request, "kitti-real")
+
+
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-23: worse than without the map on 4 of 10 — TrianFlow 00 65.7 → "
+                   "105.8 m, 01 558.7 → 560.9, 02 166.2 → 359.1, CVO 02 55.6 → 100.3 (issue 16: one road "
+                   "hypothesis, an odometry σ that is not the odometry's)")
+def test_real_odometry_the_map_never_makes_a_drive_worse(request):
+    """Issue 16: with real VO results on the real drives (RTK GPS for the first 30 s), Map-Fusion is
+    never worse than the same engine without the map."""
+    rows = _real(request)
+    assert all(r["ate_mapfusion_m"] <= r["ate_odometry_m"] for r in rows)
+
+
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-23: mean ATE 101.4 m without the map, 122.7 m with it (−21%); "
+                   "needs ≥ 30% better")
+def test_real_odometry_30_percent_better_on_average(request):
+    assert _reduction(_real(request)) >= 0.30
+

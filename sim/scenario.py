@@ -68,6 +68,7 @@ class OdometryKind(str, enum.Enum):
 
     vo = "vo"  # stereo visual odometry, DROID-SLAM-like
     vio = "vio"  # stereo visual-inertial odometry, ORB-SLAM3-like
+    recorded = "recorded"  # a real odometry's output on a recorded drive ([odometry] file, KITTI format)
 
 
 class GpsMode(str, enum.Enum):
@@ -170,8 +171,12 @@ class OdometryConfig:
     """``[odometry]``: the odometry kind; ``overrides`` (any other key of the table) replace
     fields of the kind × weather preset (see ``sim.sensors.OdometryParams``)."""
 
-    kind: OdometryKind = param(OdometryKind.vo, "vo (stereo VO) | vio (stereo VIO).")
+    kind: OdometryKind = param(OdometryKind.vo, "vo (stereo VO) | vio (stereo VIO) | recorded (a real odometry's "
+                               "output, with file).")
     overrides: tuple[tuple[str, float], ...] = param((), "Preset fields replaced by the scenario.")
+    file: str = param("", "kind = recorded: the odometry's poses in KITTI's format (12 numbers a line, camera frame: "
+                      "x right, y down, z forward), one line per frame of the recorded drive (truth = a KITTI "
+                      "directory); may name ${MAPFUSION_DATA}.")
 
 
 @dataclass(frozen=True)
@@ -201,7 +206,8 @@ class Scenario:
         """The fully resolved scenario as a TOML-ready mapping (``scenario.toml`` of a run)."""
         d = to_mapping(self)
         odo = d.pop("odometry")
-        d["odometry"] = {"kind": odo["kind"], **{k: v for k, v in odo.get("overrides", [])}}
+        d["odometry"] = {"kind": odo["kind"], **({"file": odo["file"]} if odo.get("file") else {}),
+                         **{k: v for k, v in odo.get("overrides", [])}}
         d["tunnels"] = [to_mapping(z) for z in self.tunnels]
         if not d["tunnels"]:
             del d["tunnels"]
@@ -247,7 +253,8 @@ def _scenario_from_dict(data: dict, where: str, base_dir: Path | None, resolve: 
         if not isinstance(odo, dict):
             raise ScenarioError(f"{where}: [odometry] must be a table")
         kind = odo.pop("kind", OdometryKind.vo.value)
-        base = from_mapping(OdometryConfig, {"kind": kind}, where, prefix="odometry.")
+        file = odo.pop("file", "")
+        base = from_mapping(OdometryConfig, {"kind": kind, "file": file}, where, prefix="odometry.")
         kwargs["odometry"] = dataclasses.replace(base, overrides=_odometry_overrides(odo, where))
     if "tunnels" in data:
         zones = data.pop("tunnels")
@@ -259,8 +266,21 @@ def _scenario_from_dict(data: dict, where: str, base_dir: Path | None, resolve: 
     sc = dataclasses.replace(top, **kwargs)
     if sc.gps.source is GpsSource.recorded and not sc.truth:
         raise ScenarioError(f"{where}: gps.source = \"recorded\" needs a recorded drive (truth = ...)")
+    recorded_odometry = sc.odometry.kind is OdometryKind.recorded
+    if recorded_odometry != bool(sc.odometry.file):
+        raise ScenarioError(f"{where}: odometry.file goes with odometry.kind = \"recorded\", and the kind needs the file")
+    if recorded_odometry and (not sc.truth or sc.odometry.overrides):
+        raise ScenarioError(f"{where}: odometry.kind = \"recorded\" needs a recorded drive (truth = a KITTI directory) "
+                            "and takes no preset fields")
     if not resolve:
         return sc
+    if recorded_odometry:
+        f = Path(expand_data_path(sc.odometry.file, "odometry.file", where)).expanduser()
+        if not f.is_absolute() and base_dir is not None:
+            f = base_dir / f
+        if not f.is_file():
+            raise ScenarioError(f"{where}: odometry.file: {f}: no such file")
+        sc = dataclasses.replace(sc, odometry=dataclasses.replace(sc.odometry, file=str(f.resolve())))
     if sc.truth:
         truth = Path(expand_data_path(sc.truth, "truth", where)).expanduser()
         if not truth.is_absolute() and base_dir is not None:
@@ -350,7 +370,7 @@ def _set_dotted(d: dict, dotted: str, value: Any) -> None:
 def _slug(v: Any) -> str:
     if isinstance(v, str) and v.startswith("$"):  # ${MAPFUSION_DATA}/osm/andorra.osm.pbf → andorra
         name = Path(v).name
-        for ext in (".osm.pbf", ".osm.gz", ".osm.bz2", ".osm", ".pbf", ".tum"):
+        for ext in (".osm.pbf", ".osm.gz", ".osm.bz2", ".osm", ".pbf", ".tum", ".txt"):
             name = name.removesuffix(ext)
         return name
     return str(v).replace("/", "-").replace(" ", "").replace(".osm.pbf", "").replace(".osm", "")
@@ -364,9 +384,9 @@ def expand_family(data: dict, where: str, base_dir: Path | None = None) -> Famil
     unknown = sorted(set(data) - {"family", "base"})
     if unknown:
         raise ScenarioError(f"{where}: unknown key {unknown[0]} in a family file (known: family, base)")
-    unknown = sorted(set(fam) - {"name", "seeds", "axes"})
+    unknown = sorted(set(fam) - {"name", "seeds", "axes", "zip"})
     if unknown:
-        raise ScenarioError(f"{where}: unknown key family.{unknown[0]} (known: name, seeds, axes)")
+        raise ScenarioError(f"{where}: unknown key family.{unknown[0]} (known: name, seeds, axes, zip)")
     name = fam.get("name")
     if not isinstance(name, str) or not name:
         raise ScenarioError(f"{where}: family.name must be a non-empty string")
@@ -376,9 +396,21 @@ def expand_family(data: dict, where: str, base_dir: Path | None = None) -> Famil
     axes = fam.get("axes", {})
     if not isinstance(axes, dict) or not all(isinstance(v, list) and v for v in axes.values()):
         raise ScenarioError(f"{where}: family.axes must map dotted keys to non-empty lists")
+    zipped = fam.get("zip", {})
+    if not isinstance(zipped, dict) or not all(isinstance(v, list) and v for v in zipped.values()):
+        raise ScenarioError(f"{where}: family.zip must map dotted keys to non-empty lists")
+    if len({len(v) for v in zipped.values()}) > 1:
+        raise ScenarioError(f"{where}: family.zip: every list must have the same length (they vary together)")
+    if set(zipped) & set(axes):
+        raise ScenarioError(f"{where}: {sorted(set(zipped) & set(axes))[0]} is both in family.axes and family.zip")
     base = data.get("base", {})
     if not isinstance(base, dict):
         raise ScenarioError(f"{where}: [base] must be a table")
+    # the zipped keys form one axis whose values are tuples (one run per position)
+    zkeys = list(zipped)
+    axes = dict(axes)
+    if zkeys:
+        axes["\0zip"] = list(zip(*(zipped[k] for k in zkeys)))
     keys = list(axes)
     scenarios = []
     unavailable = []
@@ -386,10 +418,17 @@ def expand_family(data: dict, where: str, base_dir: Path | None = None) -> Famil
     for combo in itertools.product(*(axes[k] for k in keys)):
         for seed in seeds:
             d = copy.deepcopy(base)
+            parts = [name]
             for k, v in zip(keys, combo):
-                _set_dotted(d, k, v)
+                if k == "\0zip":
+                    for zk, zv in zip(zkeys, v):
+                        _set_dotted(d, zk, zv)
+                    parts += [_slug(zv) for zv in v]
+                else:
+                    _set_dotted(d, k, v)
+                    parts.append(_slug(v))
             d["seed"] = seed
-            parts = [name] + [_slug(v) for v in combo] + [f"s{seed}"]
+            parts.append(f"s{seed}")
             d["name"] = "-".join(parts)
             if d["name"] in seen:
                 raise ScenarioError(f"{where}: two runs would be named {d['name']}")

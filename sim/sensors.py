@@ -388,12 +388,31 @@ def sensor_streams(seed: int) -> dict[str, np.random.Generator]:
     return {name: np.random.default_rng(c) for name, c in zip(("odometry", "imu", "gps"), children)}
 
 
+def recorded_odometry(truth: Truth, path: str) -> OdometryOutput:
+    """A real odometry's output (KITTI poses, camera frame) on its recorded drive: one pose per
+    truth frame, at the truth's times, in the body convention (x forward, y left, z up)."""
+    from mapfusion.formats import FormatError, read_kitti_poses
+    from mapfusion.replay import camera_to_body
+
+    poses = read_kitti_poses(path)
+    n = len(truth)
+    if len(poses) < n:  # the drive may be cut by duration_s: its first frames are the truth's
+        raise FormatError(f"{path}: {len(poses)} poses, but the recorded drive has {n} frames")
+    poses = poses[:n]
+    none = np.zeros(n, dtype=bool)
+    return OdometryOutput(np.asarray(truth.t_s, float), camera_to_body(poses), np.arange(n), none, none.copy())
+
+
 def synthesise(sc: Scenario, truth: Truth, gps: GpsOutput | None = None) -> SensorData:
     """Odometry (kind × weather preset with the scenario's overrides), IMU and GPS for a truth;
     ``gps`` (recorded fixes) replaces the receiver model."""
-    params = odometry_preset(sc.odometry.kind, sc.weather.kind).with_overrides(sc.odometry.overrides)
     rng = sensor_streams(sc.seed)
-    odo = simulate_odometry(truth, params, rng["odometry"], rain=WeatherKind(sc.weather.kind) is not WeatherKind.clear)
+    if sc.odometry.kind is OdometryKind.recorded:
+        params = odometry_preset(OdometryKind.vo, sc.weather.kind)  # unused by a recorded odometry
+        odo = recorded_odometry(truth, sc.odometry.file)
+    else:
+        params = odometry_preset(sc.odometry.kind, sc.weather.kind).with_overrides(sc.odometry.overrides)
+        odo = simulate_odometry(truth, params, rng["odometry"], rain=WeatherKind(sc.weather.kind) is not WeatherKind.clear)
     imu = simulate_imu(truth, sc.imu, rng["imu"])
     gps = simulate_gps(truth, sc.gps, rng["gps"]) if gps is None else gps
     return SensorData(odo, imu, gps, params)

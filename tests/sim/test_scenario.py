@@ -148,7 +148,8 @@ def test_bad_family(tmp_path):
 
 @given(
     seed=st.integers(0, 10**6), bg=st.integers(0, 100), sigma=st.floats(0.0, 50.0),
-    weather=st.sampled_from(list(WeatherKind)), odo=st.sampled_from(list(OdometryKind)),
+    weather=st.sampled_from(list(WeatherKind)),
+    odo=st.sampled_from([k for k in OdometryKind if k is not OdometryKind.recorded]),  # recorded: its own test
     mode=st.sampled_from(list(GpsMode)), lane=st.floats(0.5, 10.0),
     zones=st.lists(st.tuples(st.floats(0, 1e4), st.floats(1.0, 1e3)), max_size=3),
 )
@@ -243,3 +244,87 @@ def test_kitti_family_file_names_runs_by_sequence(tmp_path, monkeypatch):
     s = next(s for s in fam.scenarios if s.name == "kitti-05-rain-vo-s1")
     assert s.truth == str((tmp_path / "kitti" / "05").resolve()) and s.map.endswith("05/map.osm")
     assert s.gps.source.value == "recorded" and s.gps.mode is GpsMode.init_only and s.weather.kind is WeatherKind.rain
+
+
+def test_family_zip_varies_its_keys_together_crossed_with_the_axes(tmp_path):
+    p = _write(tmp_path, '''
+[family]
+name = "z"
+seeds = [1, 2]
+[family.axes]
+"weather.kind" = ["clear", "rain"]
+[family.zip]
+"traffic.background_vehicles" = [0, 5, 9]
+"gps.sigma_m" = [1.0, 2.0, 3.0]
+[base]
+map = "grid"
+''', "z.toml")
+    fam = load_family(p)
+    assert len(fam.scenarios) == 2 * 3 * 2  # axes × zip positions × seeds
+    assert {(s.traffic.background_vehicles, s.gps.sigma_m) for s in fam.scenarios} == {(0, 1.0), (5, 2.0), (9, 3.0)}
+    assert "z-rain-5-2.0-s2" in {s.name for s in fam.scenarios}
+    for bad, needle in (('"gps.sigma_m" = [1.0, 2.0]', "same length"), ('"weather.kind" = ["clear", "rain", "rain"]',
+                                                                         "both in family.axes and family.zip")):
+        text = p.read_text().replace('"gps.sigma_m" = [1.0, 2.0, 3.0]', bad)
+        with pytest.raises(ScenarioError, match=needle):
+            load_family(_write(tmp_path, text, "bad.toml"))
+
+
+def test_recorded_odometry_keys(tmp_path):
+    seq = _fake_kitti(tmp_path / "seq")
+    (tmp_path / "vo.txt").write_text("")
+    with pytest.raises(ScenarioError, match="odometry.file goes with"):
+        scenario_from_dict({"truth": "seq", "odometry": {"kind": "recorded"}}, "t", tmp_path)
+    with pytest.raises(ScenarioError, match="odometry.file goes with"):
+        scenario_from_dict({"truth": "seq", "odometry": {"file": "vo.txt"}}, "t", tmp_path)
+    with pytest.raises(ScenarioError, match="needs a recorded drive"):
+        scenario_from_dict({"odometry": {"kind": "recorded", "file": "vo.txt"}}, "t", tmp_path)
+    with pytest.raises(ScenarioError, match="takes no preset fields"):
+        scenario_from_dict({"truth": "seq", "odometry": {"kind": "recorded", "file": "vo.txt", "scale_error_sigma": 0.1}},
+                           "t", tmp_path)
+    with pytest.raises(ScenarioError, match="odometry.file: .*nope.txt: no such file"):
+        scenario_from_dict({"truth": "seq", "odometry": {"kind": "recorded", "file": "nope.txt"}}, "t", tmp_path)
+    sc = scenario_from_dict({"truth": "seq", "odometry": {"kind": "recorded", "file": "vo.txt"}}, "t", tmp_path)
+    assert sc.odometry.kind is OdometryKind.recorded and sc.odometry.file == str((tmp_path / "vo.txt").resolve())
+    assert sc.truth == str(seq.resolve())
+    assert scenario_from_dict(tomllib.loads(sc.to_toml()), "again") == sc  # the resolved scenario round-trips
+
+
+def test_recorded_odometry_is_the_files_poses_at_the_truths_times(tmp_path):
+    import numpy as np
+
+    from mapfusion.formats import FormatError
+    from mapfusion.replay import camera_to_body
+    from sim.sensors import recorded_odometry
+    from tests.helpers import synthetic_truth
+
+    truth = synthetic_truth("random", n=50, seed=3)
+    rng = np.random.default_rng(0)
+    poses = np.tile(np.eye(4), (60, 1, 1))
+    poses[:, :3, 3] = np.cumsum(rng.normal(0, 1, (60, 3)), axis=0)
+    (tmp_path / "vo.txt").write_text("\n".join(" ".join(f"{v:.9f}" for v in p[:3].ravel()) for p in poses) + "\n")
+    odo = recorded_odometry(truth, str(tmp_path / "vo.txt"))
+    np.testing.assert_allclose(odo.poses, camera_to_body(poses[:50]), atol=1e-8)  # the drive's first 50 frames
+    np.testing.assert_array_equal(odo.t_s, truth.t_s)
+    np.testing.assert_array_equal(odo.frame_index, np.arange(50))
+    with pytest.raises(FormatError, match="30 poses, but the recorded drive has 50 frames"):
+        (tmp_path / "short.txt").write_text("\n".join((tmp_path / "vo.txt").read_text().splitlines()[:30]) + "\n")
+        recorded_odometry(truth, str(tmp_path / "short.txt"))
+
+
+def test_kitti_real_family_pairs_each_result_with_its_drive(tmp_path, monkeypatch):
+    from tests.helpers import REPO
+
+    for s in ("00", "01", "02", "05", "07"):
+        _fake_kitti(tmp_path / "kitti" / s)
+    (tmp_path / "vo").mkdir()
+    for s in ("00", "01", "02", "05", "07"):
+        for m in ("cvo_stereo", "trianflow"):
+            (tmp_path / "vo" / f"{m}_{s}.txt").write_text("")
+    monkeypatch.setenv("MAPFUSION_DATA", str(tmp_path))
+    fam = load_family(REPO / "scenarios" / "families" / "kitti-real.toml")
+    assert len(fam.scenarios) == 10
+    for sc in fam.scenarios:
+        seq = sc.name.split("-")[2]
+        assert sc.truth.endswith(f"kitti/{seq}") and sc.odometry.file.endswith(f"_{seq}.txt")
+        assert sc.odometry.kind is OdometryKind.recorded and sc.gps.init_window_s == 30.0
