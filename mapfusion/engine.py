@@ -32,11 +32,11 @@ from .gps_gate import GpsGate, Verdict
 from .initialisation import Initialiser, solve_initial_batch
 from .roadmap import RoadMap
 from .smoother import Smoother
-from .track import Alignment, Track, level, planar_step
+from .track import Alignment, Track
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MapFusion", "EngineError", "Counters", "level", "planar_step"]
+__all__ = ["MapFusion", "EngineError"]
 
 
 class EngineError(InputError):

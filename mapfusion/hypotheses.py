@@ -77,7 +77,6 @@ class RoadHypotheses:
     """The forward filter over (edge, direction) hypotheses."""
 
     def __init__(self, road: RoadMap, cfg: FusionConfig) -> None:
-        self.road = road
         self.cfg = cfg
         self.logp: dict[Key, float] = {}
         self.along: dict[Key, float] = {}

@@ -21,7 +21,7 @@ from rich.table import Table
 
 from mapfusion.errors import InputError
 
-from .tables import paper_table, table_one
+from .tables import paper_table
 
 app = typer.Typer(
     name="mapfusion",

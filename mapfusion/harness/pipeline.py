@@ -172,10 +172,7 @@ def write_run(d: Path, sc: Scenario, o: RunOutcome, plot: bool = True) -> None:
     """Every file of a run directory."""
     write_simulation(d, Simulation(sc, o.road, o.truth, o.drive, o.sensors, math.nan))
     for name, res in (("estimate_odometry.tum", o.baseline), ("estimate_mapfusion.tum", o.mapfusion)):
-        t, _, _, ok = _online_arrays(res)
-        if len(ok):
-            xyz, q = poses_to_arrays([res.online[i] for i in ok])
-            write_tum(d / name, t, xyz, q, header=f"{name[:-4]}: online (causal) estimates, map ENU frame")
+        _write_online(res, d / name, f"{name[:-4]}: online (causal) estimates, map ENU frame")
     (d / "metrics.json").write_text(json.dumps(o.metrics, indent=2) + "\n")
     eng = o.mapfusion.engine
     events = {"map_prior_t": [float(t) for t in eng.map_prior_times()], "counters": eng.counters.as_dict(),
@@ -202,9 +199,8 @@ class RecordedInputs:
     imu: Path | None = None  # read and checked; the engine does not use it yet
 
 
-def fuse_recorded(inputs: RecordedInputs, cfg: FusionConfig, progress=None, on_map_build=None) -> FusionResult:
-    """The engine on recorded files (InputError / FormatError on bad input). ``on_map_build`` is
-    called before the road map is built (the CLI shows a status)."""
+def fuse_recorded(inputs: RecordedInputs, cfg: FusionConfig, progress=None) -> FusionResult:
+    """The engine on recorded files (InputError / FormatError on bad input)."""
     from mapfusion.formats import read_gps_csv, read_imu_csv
     from mapfusion.maps import resolve_map
 
@@ -214,22 +210,27 @@ def fuse_recorded(inputs: RecordedInputs, cfg: FusionConfig, progress=None, on_m
         fixes = fixes.until(t_odo[0] + inputs.gps_until_s)
     if inputs.imu is not None:
         read_imu_csv(inputs.imu)
-    if on_map_build is not None:
-        on_map_build()
     road = RoadMap.from_osm(resolve_map(inputs.map))
     return fuse(road, t_odo, poses, fixes, cfg, progress=progress)
 
 
+def _write_online(res: FusionResult, path: Path, header: str) -> int:
+    """The frames' causal estimates as TUM (nothing when there is none); returns the poses written."""
+    t, _, _, ok = _online_arrays(res)
+    if len(ok):
+        xyz, q = poses_to_arrays([res.online[i] for i in ok])
+        write_tum(path, t, xyz, q, header=header)
+    return len(ok)
+
+
 def write_estimates(res: FusionResult, out: Path, smoothed: Path | None = None, label: str = "") -> int:
     """The online estimate (and optionally the smoothed trajectory) as TUM; returns the poses written."""
-    t, _, _, ok = _online_arrays(res)
-    xyz, q = poses_to_arrays([res.online[i] for i in ok])
-    write_tum(out, t, xyz, q, header=f"Map-Fusion online estimate{label}")
+    n = _write_online(res, out, f"Map-Fusion online estimate{label}")
     if smoothed is not None:
         ts = sorted(res.smoothed)
         sxyz, sq = poses_to_arrays([res.smoothed[t] for t in ts])
         write_tum(smoothed, np.asarray(ts), sxyz, sq, header="Map-Fusion smoothed trajectory")
-    return len(ok)
+    return n
 
 
 def evaluate_files(truth: Path, estimate: Path, max_dt_s: float = 0.02, delocalization_m: float = 20.0) -> dict:
