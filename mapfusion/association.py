@@ -17,11 +17,16 @@ import gtsam
 import numpy as np
 
 from . import factors
-from .config import FusionConfig, RoadTracking
+from .config import FusionConfig, PriorTarget, RoadTracking
 from .counters import Counters
 from .hypotheses import RoadHypotheses, Step, candidates
 from .matcher import Match, map_pose, match, match_candidates
 from .roadmap import RoadMap
+
+
+#: Floor of the band prior's σ across the road: the moment-matched factor of an estimate far
+#: outside the band is next to rigid, and GTSAM's linear algebra should not see a σ of micrometres.
+BAND_SIGMA_FLOOR_M = 0.1
 
 
 class MapAssociation:
@@ -39,6 +44,7 @@ class MapAssociation:
         self._last: Step | None = None
         self._unexplained_m = 0.0
         self.lost = False  # no hypothesis explains the estimate (hmm only)
+        self._since_prior_m = math.inf  # odometry distance since the last map prior
 
     def reset(self) -> None:
         """Forget the last road (after a re-localisation)."""
@@ -128,19 +134,20 @@ class MapAssociation:
                 or (gate > 0 and lateral_m > gate * math.hypot(pos_sigma_m, 0.5 * width_m))
                 or self.ambiguous(m, pred))
 
-    def prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3, dt_s: float, pos_sigma_m: float
-              ) -> tuple[Match | None, gtsam.PriorFactorPose3 | None]:
+    def prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3, dt_s: float, pos_sigma_m: float,
+              lat_sigma_m: float = 0.0) -> tuple[Match | None, gtsam.PriorFactorPose3 | None]:
         """The match of frame k's predicted pose and, if the map should correct it, its prior."""
         if self.hmm is not None:
             m, confident = self._tracked_match(pred, math.hypot(step.x(), step.y()))
         else:
             m, confident = self.match(pred), False
+        self._since_prior_m += math.hypot(step.x(), step.y())
         if m is None:
             return None, None
         self.counters.matches += 1
         width = m.lanes * self.cfg.lane_width_m
         r_pose, lateral = map_pose(m, pred)
-        if lateral <= width:
+        if lateral <= width or self._since_prior_m < self.cfg.prior_spacing_m:
             return m, None
         # a confident road hypothesis replaces the single-frame gates: its heading is a valid
         # measurement even when the estimate's is far off (heading recovery), and a split posterior
@@ -149,11 +156,22 @@ class MapAssociation:
         if blocked:
             self.counters.priors_gated += 1
             return m, None
-        v_lon, v_lat = step.x() / dt_s, step.y() / dt_s
-        yaw = pred.rotation().yaw()
-        motion_dir = yaw + math.atan2(step.y(), step.x()) if step.translation()[:2].any() else yaw
-        noise = factors.map_prior_noise(self.cfg, m.yaw_rad, motion_dir, v_lon, v_lat, self._robust)
+        if self.cfg.prior_target is PriorTarget.band:
+            # the map says the vehicle is on the road, not on its centre line: the band's
+            # information given the estimate's own lateral σ (and the map's)
+            sigma = max(math.hypot(lat_sigma_m, self.cfg.prior_map_sigma_m), 0.05)
+            upd = factors.band_update(m.signed_lateral_m, sigma, width)
+            if upd is None:
+                return m, None
+            r_pose = r_pose.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(0.0, upd[0], 0.0)))
+            noise = factors.band_prior_noise(self.cfg, max(upd[1], BAND_SIGMA_FLOOR_M), self._robust)
+        else:
+            v_lon, v_lat = step.x() / dt_s, step.y() / dt_s
+            yaw = pred.rotation().yaw()
+            motion_dir = yaw + math.atan2(step.y(), step.x()) if step.translation()[:2].any() else yaw
+            noise = factors.map_prior_noise(self.cfg, m.yaw_rad, motion_dir, v_lon, v_lat, self._robust)
         self.counters.map_priors += 1
+        self._since_prior_m = 0.0
         return m, factors.pose_prior(k, r_pose, noise)
 
     def odometry_prior(self, k: int, pred: gtsam.Pose3, pos_sigma_m: float) -> gtsam.PriorFactorPose3 | None:

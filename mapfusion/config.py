@@ -194,6 +194,13 @@ class PriorMode(str, enum.Enum):
     along_free = "along_free"  # the same across the road, zero precision along it
 
 
+class PriorTarget(str, enum.Enum):
+    """Where the map prior puts the vehicle across its road (issue 16)."""
+
+    centre = "centre"  # on the centre line (paper III.B)
+    band = "band"  # the band |lateral| ≤ road width, combined with the estimate's own σ
+
+
 class RobustKernel(str, enum.Enum):
     """M-estimator on the map prior, so that a wrong match cannot drag the estimate."""
 
@@ -303,6 +310,23 @@ class FusionConfig:
         exclusive_min=True,
         source="value by measurement",
     )
+    odometry_sigma_per_m: float = param(
+        0.0,
+        "Translation σ of an odometry step per metre it moves, combined in quadrature with "
+        "odometry_sigma_after_init_m: a real odometry's error grows with the distance driven, not "
+        "with the frames (a stopped vehicle's VO does not drift).",
+        unit="m/m",
+        min=0.0,
+        source="issue 16 (honest odometry σ)",
+    )
+    odometry_rot_sigma_deg_per_m: float = param(
+        0.0,
+        "Rotation σ of an odometry step per metre it moves, combined in quadrature with "
+        "odometry_rot_sigma_deg.",
+        unit="deg/m",
+        min=0.0,
+        source="issue 16 (honest odometry σ)",
+    )
     gps_sigma_m: float = param(
         2.0,
         "σ of a GPS position factor when the fix carries none.",
@@ -354,6 +378,32 @@ class FusionConfig:
         min=0.0,
         exclusive_min=True,
         source="DESIGN item 3",
+    )
+    prior_map_sigma_m: float = param(
+        0.0,
+        "σ of the map's own geometry (OSM centre lines are off by metres, a vehicle drives in a lane, "
+        "not on the centre line), added in quadrature to both of the prior's eigenvalues; 0: the paper's "
+        "prior, whose σ is the velocity's alone.",
+        unit="m",
+        min=0.0,
+        source="issue 16 (the map never bends a good trajectory)",
+    )
+    prior_target: PriorTarget = param(
+        PriorTarget.centre,
+        "centre: the prior puts the vehicle on the road's centre line (the paper); band: the map says "
+        "only that the vehicle is within the road width of the centre line, and the prior is that band's "
+        "information given the estimate's own lateral σ (a certain estimate is moved to the band's edge, "
+        "an uncertain one towards the centre).",
+        source="issue 16 (the map never bends a good trajectory)",
+    )
+    prior_spacing_m: float = param(
+        0.0,
+        "At most one map prior per this much driving: priors from the same stretch of road share "
+        "its geometry's error and are not independent measurements; 0: a prior on every frame off "
+        "its road (the paper).",
+        unit="m",
+        min=0.0,
+        source="issue 16 (the map never bends a good trajectory)",
     )
     robust_kernel: RobustKernel = param(
         RobustKernel.huber, "none | huber | cauchy on the map prior.", source="DESIGN item 7"

@@ -84,7 +84,7 @@ class MapFusion:
         self._gps_wait: list[tuple[float, float, float, float | None, float]] = []
         self._since_update = 0
         self._last_cov_check_t = -math.inf
-        self._pos_sigma = 0.0
+        self._pos_sigma = self._lat_sigma = 0.0  # the estimate's positional σ: largest, across the vehicle
 
     # ------------------------------------------------------------------ public API
     @property
@@ -179,8 +179,7 @@ class MapFusion:
         return {self.track.t[k]: pose for k, pose in sorted(out.items()) if pose is not None}
 
     def finish(self) -> None:
-        """Add what is still pending (call once after the last measurement); fixes after the last
-        frame are counted as rejected for their time."""
+        """Add what is pending (call once at the end); later fixes count as rejected for their time."""
         if self.initialised:
             self.counters.gps_rejected_time += len(self._gps_wait)
             self._gps_wait = []
@@ -267,7 +266,7 @@ class MapFusion:
     def _map_prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3) -> bool:
         """Add the map prior on frame k if its predicted pose is off its road; True if added."""
         dt = self.track.t[k] - self.track.t[k - 1]
-        m, prior = self._association.prior(k, pred, step, dt, self._pos_sigma)
+        m, prior = self._association.prior(k, pred, step, dt, self._pos_sigma, self._lat_sigma)
         if self._association.lost:
             self.lost_s += dt
         if m is not None:
@@ -293,7 +292,8 @@ class MapFusion:
             # no marginal for that key (e.g. ISAM2 re-anchored after a failed Cholesky update and
             # the key is not in the new Bayes tree): skip this check, the next one will have one
             return
-        self._pos_sigma = math.sqrt(max(np.linalg.eigvalsh(cov[3:5, 3:5]).max(), 0.0))
+        xy = cov[3:5, 3:5]
+        self._pos_sigma, self._lat_sigma = (math.sqrt(max(v, 0.0)) for v in (np.linalg.eigvalsh(xy).max(), xy[1, 1]))
         prior = self._association.odometry_prior(k, pred, self._pos_sigma)
         if prior is not None:
             sm.add(prior)
@@ -348,7 +348,7 @@ class MapFusion:
             pose = pose.compose(step)
             sm.insert(k, pose)
             track.online[k] = pose
-        self._pos_sigma = sigma
+        self._pos_sigma = self._lat_sigma = sigma
         self._association.reset()
         self._update()
 

@@ -23,12 +23,14 @@ import numpy as np
 from .config import FusionConfig, PriorMode, RobustKernel, StateModel
 
 
-def world_covariance(motion_dir_rad: float, v_lon_mps: float, v_lat_mps: float, floor_m2: float) -> np.ndarray:
-    """Σ = E Λ E⁻¹ in the world x/y plane (2×2, symmetric positive definite)."""
+def world_covariance(motion_dir_rad: float, v_lon_mps: float, v_lat_mps: float, floor_m2: float,
+                     map_var_m2: float = 0.0) -> np.ndarray:
+    """Σ = E Λ E⁻¹ in the world x/y plane (2×2, symmetric positive definite); ``map_var_m2`` (the
+    map geometry's own variance) is added to both eigenvalues."""
     e1 = np.array([math.cos(motion_dir_rad), math.sin(motion_dir_rad)])
     e2 = np.array([-e1[1], e1[0]])
     e = np.column_stack([e1, e2])
-    lam = np.diag([max(abs(v_lon_mps), floor_m2), max(abs(v_lat_mps), floor_m2)])
+    lam = np.diag([max(abs(v_lon_mps), floor_m2) + map_var_m2, max(abs(v_lat_mps), floor_m2) + map_var_m2])
     return e @ lam @ np.linalg.inv(e)
 
 
@@ -40,9 +42,10 @@ def prior_sqrt_information(
     yaw_sigma_rad: float,
     floor_m2: float,
     mode: PriorMode,
+    map_var_m2: float = 0.0,
 ) -> np.ndarray:
     """6×6 R with RᵀR the information of the map prior in the tangent space at the prior's mean."""
-    sigma_w = world_covariance(motion_dir_rad, v_lon_mps, v_lat_mps, floor_m2)
+    sigma_w = world_covariance(motion_dir_rad, v_lon_mps, v_lat_mps, floor_m2, map_var_m2)
     c, s = math.cos(road_yaw_rad), math.sin(road_yaw_rad)
     rot = np.array([[c, -s], [s, c]])  # mean frame → world
     sigma_b = rot.T @ sigma_w @ rot
@@ -55,6 +58,40 @@ def prior_sqrt_information(
     r = np.zeros((6, 6))
     r[2, 2] = 1.0 / yaw_sigma_rad
     r[3:5, 3:5] = r_xy
+    return r
+
+
+def band_update(mu_m: float, sigma_m: float, half_width_m: float) -> tuple[float, float] | None:
+    """The map's band as a Gaussian measurement: an estimate N(μ, σ²) of the lateral offset, told
+    that the offset lies in [−h, h], has the truncated normal as posterior; returns the (mean, σ)
+    of the Gaussian factor that turns N(μ, σ²) into a Gaussian with that posterior's mean and
+    variance, or None when the band adds (next to) no information (the estimate is inside it with
+    room to spare)."""
+    from scipy.special import log_ndtr
+
+    if not (sigma_m > 0 and half_width_m > 0 and math.isfinite(mu_m)):
+        raise ValueError(f"band_update: need σ > 0, h > 0 and a finite μ, got {mu_m}, {sigma_m}, {half_width_m}")
+    sign = -1.0 if mu_m < 0 else 1.0
+    mu = abs(mu_m)  # the band is symmetric: work on the positive side
+    a, b = (-half_width_m - mu) / sigma_m, (half_width_m - mu) / sigma_m
+    log_pb, log_pa = float(log_ndtr(b)), float(log_ndtr(a))
+    log_z = log_pb + math.log1p(-math.exp(log_pa - log_pb))
+    log_phi = lambda x: -0.5 * x * x - 0.5 * math.log(2.0 * math.pi)
+    ra, rb = math.exp(log_phi(a) - log_z), math.exp(log_phi(b) - log_z)
+    mean = mu + sigma_m * (ra - rb)
+    var = sigma_m**2 * max(1.0 + a * ra - b * rb - (ra - rb) ** 2, 1e-12)
+    prec = 1.0 / var - 1.0 / sigma_m**2
+    if prec <= 1e-6 / sigma_m**2:
+        return None
+    target = (mean / var - mu / sigma_m**2) / prec
+    return sign * target, 1.0 / math.sqrt(prec)
+
+
+def band_sqrt_information(sigma_lat_m: float, yaw_sigma_rad: float) -> np.ndarray:
+    """6×6 R of a prior with information across the road (the mean frame's y) and in yaw only."""
+    r = np.zeros((6, 6))
+    r[2, 2] = 1.0 / yaw_sigma_rad
+    r[4, 4] = 1.0 / sigma_lat_m
     return r
 
 
@@ -105,6 +142,10 @@ def odometry_noise(cfg: FusionConfig, step: gtsam.Pose3, gap_frames: float, peri
     n = max(1.0, gap_frames)
     st = cfg.odometry_sigma_after_init_m * n
     sr = math.radians(cfg.odometry_rot_sigma_deg) * n
+    if cfg.odometry_sigma_per_m > 0 or cfg.odometry_rot_sigma_deg_per_m > 0:
+        length_m = float(np.linalg.norm(step.translation()))
+        st = math.hypot(st, cfg.odometry_sigma_per_m * length_m)
+        sr = math.hypot(sr, math.radians(cfg.odometry_rot_sigma_deg_per_m) * length_m)
     if n * period_s > cfg.outage_s:
         st = max(st, cfg.outage_step_fraction * float(np.linalg.norm(step.translation())))
         sr = max(sr, math.radians(cfg.outage_rot_sigma_deg))
@@ -134,10 +175,17 @@ def robust_kernel(cfg: FusionConfig):
     return None
 
 
+def band_prior_noise(cfg: FusionConfig, sigma_lat_m: float, robust=None) -> gtsam.noiseModel.Base:
+    """The band prior's noise: σ across the road from :func:`band_update`, the map's yaw σ."""
+    noise = gtsam.noiseModel.Gaussian.SqrtInformation(
+        band_sqrt_information(sigma_lat_m, math.radians(cfg.yaw_sigma_deg)), False)
+    return gtsam.noiseModel.Robust.Create(robust, noise) if robust is not None else noise
+
+
 def map_prior_noise(cfg: FusionConfig, road_yaw_rad: float, motion_dir_rad: float, v_lon_mps: float,
                     v_lat_mps: float, robust=None) -> gtsam.noiseModel.Base:
     """The map prior's noise (Eq. 6 in the tangent space), under the robust kernel if given."""
     r = prior_sqrt_information(road_yaw_rad, motion_dir_rad, v_lon_mps, v_lat_mps, math.radians(cfg.yaw_sigma_deg),
-                               cfg.prior_lambda_floor_m2, cfg.prior_mode)
+                               cfg.prior_lambda_floor_m2, cfg.prior_mode, cfg.prior_map_sigma_m**2)
     noise = gtsam.noiseModel.Gaussian.SqrtInformation(r, False)
     return gtsam.noiseModel.Robust.Create(robust, noise) if robust is not None else noise
