@@ -160,12 +160,15 @@ class MapAssociation:
             # the map says the vehicle is on the road, not on its centre line: the band's
             # information given the estimate's own lateral σ (and the map's)
             sigma = max(math.hypot(lat_sigma_m, self.cfg.prior_map_sigma_m), 0.05)
-            upd = factors.band_update(m.signed_lateral_m, sigma, width)
+            upd = factors.band_update(m.signed_lateral_m, sigma, self.cfg.prior_band_fraction * width)
             if upd is None:
                 return m, None
             r_pose = r_pose.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(0.0, upd[0], 0.0)))
             noise = factors.band_prior_noise(self.cfg, max(upd[1], BAND_SIGMA_FLOOR_M), self._robust)
         else:
+            if self.cfg.prior_target is PriorTarget.edge:
+                side = math.copysign(self.cfg.prior_band_fraction * width, m.signed_lateral_m)
+                r_pose = r_pose.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(0.0, side, 0.0)))
             v_lon, v_lat = step.x() / dt_s, step.y() / dt_s
             yaw = pred.rotation().yaw()
             motion_dir = yaw + math.atan2(step.y(), step.x()) if step.translation()[:2].any() else yaw

@@ -44,6 +44,9 @@ def test_clear_vio_1_to_6_m(table):
     assert 1.0 <= r["mean_ate_m"] <= 6.0
 
 
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-23: median 7.6 m. Issue 16's odometry σ (per metre, not per "
+                   "frame) lets the GPS window fix the heading from all its fixes, so the GPS-initialised baseline "
+                   "drifts less on the same simulated VO; re-calibrating the rain VO preset is issue 22's work")
 def test_rain_vo_8_to_20_m(table):
     r = table[("rain", "vo")]
     assert 8.0 <= r["median_ate_m"] <= 20.0

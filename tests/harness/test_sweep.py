@@ -18,9 +18,9 @@ TINY = ('[family]\nname = "tiny"\nseeds = [SEEDS]\n[family.axes]\nmap = ["grid"]
         '[base]\nduration_s = 150.0\nmin_route_m = 800.0\n[base.weather]\nkind = "rain"\n')
 
 
-def _family(tmp_path, seeds="1, 2"):
+def _family(tmp_path, seeds="1, 2", weather="rain"):
     p = tmp_path / "tiny.toml"
-    p.write_text(TINY.replace("SEEDS", seeds))
+    p.write_text(TINY.replace("SEEDS", seeds).replace('"rain"', f'"{weather}"'))
     return p
 
 
@@ -97,7 +97,9 @@ def test_sweep_bad_params_exit_2(tmp_path, param, needle):
 def test_tune_improves_on_a_deliberately_bad_start_and_resumes(tmp_path):
     import optuna
 
-    fam = _family(tmp_path, "1")
+    # heavy rain: on the short rain drive the odometry stays inside the roads' band and no setting
+    # of the map's parameters matters much
+    fam = _family(tmp_path, "1", "heavy_rain")
     out = tmp_path / "tn"
     bad = "lane_width_m=6,yaw_sigma_deg=40,angle_weight_m_per_deg=4,search_radius_m=5"
     r = runner.invoke(app, ["tune", str(fam), "--trials", "6", "--out", str(out), "--start", bad])
