@@ -147,9 +147,10 @@ def route_walk(road: RoadMap, length_m: float, seed: int = 0) -> np.ndarray:
 
 
 def bench_engine(road: RoadMap, duration_s: float = 3600.0, speed_mps: float = 10.0, rate_hz: float = 10.0,
-                 lateral_drift_m_per_m: float = 0.01, seed: int = 0) -> EngineBench:
+                 lateral_drift_m_per_m: float = 0.01, seed: int = 0, config=None) -> EngineBench:
     """The engine with map priors and the fixed-lag backend on a synthetic drive of ``duration_s``
-    along the map's roads: GPS for the first 120 s, odometry with a lateral drift so priors fire."""
+    along the map's roads: GPS for the first 120 s, then odometry with a lateral drift so priors fire.
+    ``config``: a FusionConfig (default: the defaults)."""
     import gtsam
 
     from mapfusion.config import FusionConfig
@@ -164,7 +165,7 @@ def bench_engine(road: RoadMap, duration_s: float = 3600.0, speed_mps: float = 1
     yaw = np.concatenate([yaw, yaw[-1:]])
     t = np.arange(n) / rate_hz
     rng = np.random.default_rng(seed)
-    eng = MapFusion(road, FusionConfig(), gps_rate_hz=1.0, odometry_rate_hz=rate_hz)
+    eng = MapFusion(road, config or FusionConfig(), gps_rate_hz=1.0, odometry_rate_hz=rate_hz)
     lat, lon = road.projection.to_geo(pts[:, 0], pts[:, 1])
     times = np.empty(n)
     prev = gtsam.Pose3(gtsam.Rot3.Yaw(yaw[0]), gtsam.Point3(pts[0, 0], pts[0, 1], 0.0))
@@ -172,7 +173,8 @@ def bench_engine(road: RoadMap, duration_s: float = 3600.0, speed_mps: float = 1
     for k in range(n):
         cur = gtsam.Pose3(gtsam.Rot3.Yaw(yaw[k]), gtsam.Point3(pts[k, 0], pts[k, 1], 0.0))
         rel = prev.between(cur).matrix()
-        rel[1, 3] += lateral_drift_m_per_m * rel[0, 3]
+        if t[k] > 120.0:  # after the GPS: a drift from the start is taken for a heading offset
+            rel[1, 3] += lateral_drift_m_per_m * rel[0, 3]
         prev = cur
         t0 = clock()
         if k % int(rate_hz) == 0 and t[k] <= 120.0:
@@ -276,6 +278,12 @@ def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (1
     bare = bench_bare_chain(road, duration_s=duration_s)
     yield {"benchmark": "engine", "frames": eng.frames, "map_priors": eng.map_priors, "frames_per_s": eng.frames_per_s,
            "growth": eng.growth, "bare_chain_frames_per_s": bare, "ratio_to_bare": eng.frames_per_s / bare}
+    from mapfusion.config import FusionConfig, RoadTracking
+
+    hmm = bench_engine(road, duration_s=duration_s, config=FusionConfig(road_tracking=RoadTracking.hmm))
+    yield {"benchmark": "engine_hmm", "frames": hmm.frames, "map_priors": hmm.map_priors,
+           "frames_per_s": hmm.frames_per_s, "growth": hmm.growth, "ratio_to_bare": hmm.frames_per_s / bare,
+           "ratio_to_single_frame": hmm.frames_per_s / eng.frames_per_s}
     m = bench_match(road)
     kd = bench_kdtree(road)
     yield {"benchmark": "matcher", "single_matches_per_s": m.single_matches_per_s,
