@@ -6,7 +6,10 @@ A prior is added only when the predicted pose lies farther from its road than th
 (road width = lanes × ``lane_width_m``), and not when the match's angle exceeds
 ``prior_max_angle_deg``, the match lies on a join inside a junction, another way's best D is
 within ``prior_ambiguity_m`` (junctions, parallel roads), or — with ``prior_gate_sigma`` — the
-correction is implausibly large for the estimate's own uncertainty.
+correction is implausibly large for the estimate's own uncertainty. Where the prior puts the
+vehicle across the road is ``prior_target``: the centre line (the paper), the nearest edge of the
+band (the default since issue 16), or the band combined with the estimate's own lateral σ; at most
+one prior per ``prior_spacing_m`` of driving.
 """
 
 from __future__ import annotations
@@ -27,6 +30,11 @@ from .roadmap import RoadMap
 #: Floor of the band prior's σ across the road: the moment-matched factor of an estimate far
 #: outside the band is next to rigid, and GTSAM's linear algebra should not see a σ of micrometres.
 BAND_SIGMA_FLOOR_M = 0.1
+
+
+def _across(pose: gtsam.Pose3, lateral_m: float) -> gtsam.Pose3:
+    """The pose moved ``lateral_m`` to its left (its own y axis)."""
+    return pose.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(0.0, lateral_m, 0.0)))
 
 
 class MapAssociation:
@@ -163,12 +171,11 @@ class MapAssociation:
             upd = factors.band_update(m.signed_lateral_m, sigma, self.cfg.prior_band_fraction * width)
             if upd is None:
                 return m, None
-            r_pose = r_pose.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(0.0, upd[0], 0.0)))
+            r_pose = _across(r_pose, upd[0])
             noise = factors.band_prior_noise(self.cfg, max(upd[1], BAND_SIGMA_FLOOR_M), self._robust)
         else:
             if self.cfg.prior_target is PriorTarget.edge:
-                side = math.copysign(self.cfg.prior_band_fraction * width, m.signed_lateral_m)
-                r_pose = r_pose.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(0.0, side, 0.0)))
+                r_pose = _across(r_pose, math.copysign(self.cfg.prior_band_fraction * width, m.signed_lateral_m))
             v_lon, v_lat = step.x() / dt_s, step.y() / dt_s
             yaw = pred.rotation().yaw()
             motion_dir = yaw + math.atan2(step.y(), step.x()) if step.translation()[:2].any() else yaw
