@@ -183,7 +183,8 @@ class OdometryConfig:
 class Scenario:
     """One drive: map, seed, timing, traffic, weather, sensors, GPS-denied zones and engine parameters."""
 
-    name: str = param("scenario", "Name of the run (used for its directory and in tables).")
+    name: str = param("scenario", "Name of the run (its directory under --out, and in tables): one path component "
+                      "of letters, digits, '_', '.', '+', '-', at most 128, not starting with '.', '+' or '-'.")
     map: str = param("helsinki", "OSM file: built-in name, path relative to the scenario file, or absolute.")
     seed: int = param(1, "Seed of everything random in the run (route, traffic, sensors).", min=0, max=2**31 - 1)
     duration_s: float = param(600.0, "Upper bound on simulated time.", unit="s", min=0.0, exclusive_min=True, max=86400.0)
@@ -222,6 +223,10 @@ class Scenario:
 
 _SECTIONS = {"traffic": TrafficConfig, "route": RouteConfig, "weather": WeatherConfig, "gps": GpsConfig,
              "imu": ImuParams, "mapfusion": FusionConfig}
+
+
+#: A run's name becomes its directory under --out: one safe path component, never "..", "/x" or "".
+_RUN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,127}")
 
 
 def scenario_from_dict(data: dict, where: str, base_dir: Path | None = None, resolve: bool = True) -> Scenario:
@@ -264,6 +269,9 @@ def _scenario_from_dict(data: dict, where: str, base_dir: Path | None, resolve: 
     map_given = "map" in data
     top = from_mapping(Scenario, data, where) if data else Scenario()
     sc = dataclasses.replace(top, **kwargs)
+    if not _RUN_NAME.fullmatch(sc.name):
+        raise ScenarioError(f"{where}: name {sc.name!r} must be one path component of at most 128 letters, digits, "
+                            "'_', '.', '+' or '-', not starting with '.', '+' or '-' (it names the run's directory)")
     if sc.gps.source is GpsSource.recorded and not sc.truth:
         raise ScenarioError(f"{where}: gps.source = \"recorded\" needs a recorded drive (truth = ...)")
     recorded_odometry = sc.odometry.kind is OdometryKind.recorded

@@ -365,3 +365,23 @@ def test_paper_table_turns_when_the_runs_do_not_fit(n, width, turned):
     else:
         assert cells["odometry"][-1] == f"{avg_o:.2f}"
         assert cells["+ Map-Fusion"][1] == "x"
+
+
+@pytest.mark.parametrize("name", ["../../escaped", "/abs/escaped", "a/b", ".hidden", "a b"])
+@pytest.mark.parametrize("kind", ["scenario", "family"])
+def test_a_name_never_escapes_out(tmp_path, name, kind):
+    """Issue 19: a run's name names its directory under --out; a name that is not one safe path
+    component is refused (exit 2, one line naming it) before anything is written."""
+    if kind == "scenario":
+        text = f'name = "{name}"\nmap = "grid"\nduration_s = 60.0\n'
+    else:
+        text = f'[family]\nname = "{name}"\nseeds = [1]\n[family.axes]\nmap = ["grid"]\n[base]\nduration_s = 60.0\n'
+    (tmp_path / "work").mkdir()
+    p = tmp_path / "work" / "s.toml"
+    p.write_text(text)
+    out = tmp_path / "work" / "out"
+    before = sorted(tmp_path.rglob("*"))
+    r = runner.invoke(app, ["run", str(p), "--out", str(out), "--no-plot"])
+    assert r.exit_code == 2, r.output
+    assert "name" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert sorted(tmp_path.rglob("*")) == before  # nothing written, inside --out or outside it
