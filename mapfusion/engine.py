@@ -52,6 +52,15 @@ def _as_pose3(pose) -> gtsam.Pose3:
     return gtsam.Pose3(m)
 
 
+def _gps_sigma(sigma_m: float | None, default_m: float) -> float:
+    """A fix's σ: its own, or the configured one for None or NaN; never a σ ≤ 0 silently replaced."""
+    if sigma_m is None or math.isnan(sigma_m):
+        return default_m
+    if not 0.0 < sigma_m < math.inf:
+        raise EngineError(f"GPS sigma_m must be > 0 and finite (None or NaN: the configured σ), got {sigma_m}")
+    return float(sigma_m)
+
+
 def _finite_pose(p: gtsam.Pose3) -> bool:
     return bool(np.all(np.isfinite(p.matrix())))
 
@@ -141,8 +150,7 @@ class MapFusion:
         if not all(v is not None and math.isfinite(v) for v in vals) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
             self.counters.gps_rejected_invalid += 1
             return
-        ok = sigma_m is not None and math.isfinite(sigma_m) and sigma_m > 0
-        sigma = float(sigma_m) if sigma_m is not None and ok else self.cfg.gps_sigma_m
+        sigma = _gps_sigma(sigma_m, self.cfg.gps_sigma_m)
         x, y = self.road.projection.to_enu(lat, lon)
         t, x, y = float(t), float(x), float(y)
         if not self.initialised:

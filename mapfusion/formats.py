@@ -133,6 +133,8 @@ def tum_to_matrices(xyz: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
 
 
 GPS_HEADER = ("t", "lat", "lon", "alt", "sigma_m")
+#: The largest GPS σ a file may give: beyond the size of the Earth a σ says nothing.
+MAX_GPS_SIGMA_M = 1e7
 IMU_HEADER = ("t", "ax", "ay", "az", "gx", "gy", "gz")
 
 
@@ -208,7 +210,14 @@ def read_gps_csv(path: str | Path) -> GpsFixes:
     """Read a GPS CSV. Malformed lines and time going backwards raise :class:`FormatError` with
     file and line. Non-finite values are kept (the engine counts and rejects them)."""
     p = Path(path)
-    rows = [vals for _, vals in _csv_rows(p, GPS_HEADER, {"alt", "sigma_m"})]
+    rows = []
+    for lineno, vals in _csv_rows(p, GPS_HEADER, {"alt", "sigma_m"}):
+        sigma = vals[4]
+        # an empty σ means "the configured one"; a σ given must be one (never silently replaced)
+        if not math.isnan(sigma) and not 0.0 < sigma <= MAX_GPS_SIGMA_M:
+            raise FormatError(f"{p}:{lineno}: sigma_m must be > 0 and at most {MAX_GPS_SIGMA_M:g} m, got {sigma:g} "
+                              "(leave it empty for the configured σ)")
+        rows.append(vals)
     a = np.asarray(rows, dtype=float).reshape(-1, 5)
     return GpsFixes(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4])
 

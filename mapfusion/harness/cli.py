@@ -97,7 +97,7 @@ def maps_build(
         _fail(str(exc))
     stats = road.stats()
     if as_json:
-        print(json.dumps(stats.to_dict(), indent=2))
+        _print_json(stats.to_dict(), indent=2)
     else:
         console.print(_stats_table(stats, f"Road map: {path}"))
 
@@ -180,7 +180,7 @@ def maps_stress(
         d = result.to_dict()
         if seq is not None:  # the sequence figures lead; the station test stays under "stations"
             d = {**seq.to_dict(), "stations": d}
-        print(json.dumps(d, indent=2))
+        _print_json(d, indent=2)
         return
     if seq is not None:
         _print_sequence_stress(path.name, seq)
@@ -418,7 +418,7 @@ def evaluate(
     except InputError as exc:
         _fail(str(exc))
     if as_json:
-        print(json.dumps(out, indent=2))
+        _print_json(out, indent=2)
         return
     t = Table(title=f"{estimate.name} against {truth.name}")
     t.add_column("metric")
@@ -668,10 +668,26 @@ def bench(
     with err_console.status("benchmarking (road map, engine, matcher) ..."):
         for row in run_benchmarks(duration_s, size):
             if as_json:
-                print(json.dumps(row), flush=True)
+                _print_json(row)
             else:
                 console.print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
                               highlight=False)
+
+
+def _finite_or_null(obj):
+    """JSON has no Infinity or NaN: a non-finite float is printed as null."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite_or_null(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite_or_null(v) for v in obj]
+    return obj
+
+
+def _print_json(obj, indent: int | None = None) -> None:
+    """Strict JSON on stdout (``--json`` of every command)."""
+    print(json.dumps(_finite_or_null(obj), indent=indent, allow_nan=False), flush=True)
 
 
 def main() -> None:

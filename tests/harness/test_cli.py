@@ -385,3 +385,13 @@ def test_a_name_never_escapes_out(tmp_path, name, kind):
     assert r.exit_code == 2, r.output
     assert "name" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert sorted(tmp_path.rglob("*")) == before  # nothing written, inside --out or outside it
+
+
+def test_json_output_is_strict(capsys):
+    import math
+
+    from mapfusion.harness.cli import _print_json
+
+    _print_json({"a": math.inf, "b": [math.nan, 1.5], "c": {"d": -math.inf}, "e": np.float64(2.0)})
+    out = json.loads(capsys.readouterr().out, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
+    assert out == {"a": None, "b": [None, 1.5], "c": {"d": None}, "e": 2.0}
