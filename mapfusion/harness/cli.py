@@ -47,6 +47,23 @@ def _fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
+def _check_output_file(path: Path, option: str, inputs: dict[str, Path | str | None]) -> None:
+    """Refuse, before any work, an output file that is a directory, cannot be created, or is one of
+    the command's inputs (it would be overwritten)."""
+    if path.is_dir():
+        _fail(f"{option} {path} is a directory")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        _fail(f"{option} {path}: no such directory {parent}")
+    if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        _fail(f"{option} {path}: not writable")
+    for name, given in inputs.items():
+        if given is None or (name == "--map" and not Path(given).exists()):  # a built-in map's name
+            continue
+        if Path(given).resolve() == path.resolve():
+            _fail(f"{option} {path} is also {name}: it would be overwritten")
+
+
 @app.callback()
 def _main(
     verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="More log output (-v info, -vv debug).")] = 0,
@@ -366,6 +383,10 @@ def fuse(
 
     from .pipeline import RecordedInputs, fuse_recorded, write_estimates
 
+    given = {"--map": map_path, "--odometry": odometry, "--gps": gps, "--imu": imu, "--config": config, "--times": times}
+    _check_output_file(out, "--out", given)
+    if smoothed is not None:
+        _check_output_file(smoothed, "--smoothed", {**given, "--out": out})
     try:
         try:
             fmt, frame = OdometryFormat(odometry_format), OdometryFrame(odometry_frame)

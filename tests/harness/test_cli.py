@@ -395,3 +395,28 @@ def test_json_output_is_strict(capsys):
     _print_json({"a": math.inf, "b": [math.nan, 1.5], "c": {"d": -math.inf}, "e": np.float64(2.0)})
     out = json.loads(capsys.readouterr().out, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
     assert out == {"a": None, "b": [None, 1.5], "c": {"d": None}, "e": 2.0}
+
+
+@pytest.mark.sumo
+@pytest.mark.parametrize("case,needle", [("odometry", "is also --odometry"), ("gps", "is also --gps"),
+                                         ("dir", "is a directory"), ("missing", "no such directory"),
+                                         ("same", "is also --out")])
+def test_fuse_refuses_a_bad_output_before_the_work(sim_run, tmp_path, case, needle):
+    """Issue 19: --out (or --smoothed) naming an input, a directory or a missing folder is refused with
+    exit 2 and one line before the fusion runs, and no input is touched."""
+    work = tmp_path / "w"
+    work.mkdir()
+    odo, gps = work / "odometry.tum", work / "gps.csv"
+    odo.write_bytes((sim_run / "odometry.tum").read_bytes())
+    gps.write_bytes((sim_run / "gps.csv").read_bytes())
+    before = {p: p.read_bytes() for p in (odo, gps)}
+    out, smoothed = {"odometry": (odo, None), "gps": (work / "e.tum", gps), "dir": (work, None),
+                     "missing": (work / "no" / "e.tum", None), "same": (work / "e.tum", work / "e.tum")}[case]
+    args = ["fuse", "--map", "grid", "--odometry", str(odo), "--gps", str(gps), "--out", str(out)]
+    if smoothed is not None:
+        args += ["--smoothed", str(smoothed)]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2, r.output
+    assert needle in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert {p: p.read_bytes() for p in (odo, gps)} == before
+    assert not (work / "e.tum").exists()
