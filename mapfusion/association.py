@@ -145,11 +145,12 @@ class MapAssociation:
     def prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3, dt_s: float, pos_sigma_m: float,
               lat_sigma_m: float = 0.0) -> tuple[Match | None, gtsam.PriorFactorPose3 | None]:
         """The match of frame k's predicted pose and, if the map should correct it, its prior."""
+        moved_m = math.hypot(step.x(), step.y())
         if self.hmm is not None:
-            m, confident = self._tracked_match(pred, math.hypot(step.x(), step.y()))
+            m, confident = self._tracked_match(pred, moved_m)
         else:
             m, confident = self.match(pred), False
-        self._since_prior_m += math.hypot(step.x(), step.y())
+        self._since_prior_m += moved_m
         if m is None:
             return None, None
         self.counters.matches += 1

@@ -140,20 +140,18 @@ def odometry_noise(cfg: FusionConfig, step: gtsam.Pose3, gap_frames: float, peri
     its length: a re-initialised odometry guesses the motion it did not see. Before initialisation
     the step is either loose (``loose_before_init``) or inflated by the scale's σ."""
     n = max(1.0, gap_frames)
-    st = cfg.odometry_sigma_after_init_m * n
-    sr = math.radians(cfg.odometry_rot_sigma_deg) * n
-    if cfg.odometry_sigma_per_m > 0 or cfg.odometry_rot_sigma_deg_per_m > 0:
-        length_m = float(np.linalg.norm(step.translation()))
-        st = math.hypot(st, cfg.odometry_sigma_per_m * length_m)
-        sr = math.hypot(sr, math.radians(cfg.odometry_rot_sigma_deg_per_m) * length_m)
+    length_m = float(np.linalg.norm(step.translation()))
+    st = math.hypot(cfg.odometry_sigma_after_init_m * n, cfg.odometry_sigma_per_m * length_m)
+    sr = math.hypot(math.radians(cfg.odometry_rot_sigma_deg) * n,
+                    math.radians(cfg.odometry_rot_sigma_deg_per_m) * length_m)
     if n * period_s > cfg.outage_s:
-        st = max(st, cfg.outage_step_fraction * float(np.linalg.norm(step.translation())))
+        st = max(st, cfg.outage_step_fraction * length_m)
         sr = max(sr, math.radians(cfg.outage_rot_sigma_deg))
     if before_init and cfg.loose_before_init:
         st, sr = cfg.odometry_sigma_before_init_m, 10.0 * sr
     elif before_init:
         # the batch is solved once the scale is known: its uncertainty scales the step's length
-        st = math.hypot(st, (scale_sigma or 0.0) * float(np.linalg.norm(step.translation())))
+        st = math.hypot(st, (scale_sigma or 0.0) * length_m)
     return diagonal(pose_sigmas(cfg.state, sr, st, tilt_rad=sr, z_m=st))
 
 
@@ -177,9 +175,7 @@ def robust_kernel(cfg: FusionConfig):
 
 def band_prior_noise(cfg: FusionConfig, sigma_lat_m: float, robust=None) -> gtsam.noiseModel.Base:
     """The band prior's noise: σ across the road from :func:`band_update`, the map's yaw σ."""
-    noise = gtsam.noiseModel.Gaussian.SqrtInformation(
-        band_sqrt_information(sigma_lat_m, math.radians(cfg.yaw_sigma_deg)), False)
-    return gtsam.noiseModel.Robust.Create(robust, noise) if robust is not None else noise
+    return _sqrt_information_noise(band_sqrt_information(sigma_lat_m, math.radians(cfg.yaw_sigma_deg)), robust)
 
 
 def map_prior_noise(cfg: FusionConfig, road_yaw_rad: float, motion_dir_rad: float, v_lon_mps: float,
@@ -187,5 +183,10 @@ def map_prior_noise(cfg: FusionConfig, road_yaw_rad: float, motion_dir_rad: floa
     """The map prior's noise (Eq. 6 in the tangent space), under the robust kernel if given."""
     r = prior_sqrt_information(road_yaw_rad, motion_dir_rad, v_lon_mps, v_lat_mps, math.radians(cfg.yaw_sigma_deg),
                                cfg.prior_lambda_floor_m2, cfg.prior_mode, cfg.prior_map_sigma_m**2)
+    return _sqrt_information_noise(r, robust)
+
+
+def _sqrt_information_noise(r: np.ndarray, robust=None) -> gtsam.noiseModel.Base:
+    """A noise model from a square-root information matrix, under the robust kernel if given."""
     noise = gtsam.noiseModel.Gaussian.SqrtInformation(r, False)
     return gtsam.noiseModel.Robust.Create(robust, noise) if robust is not None else noise
