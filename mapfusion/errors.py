@@ -24,3 +24,8 @@ class MapContentError(InputError):
 
 class ConfigError(InputError):
     """A configuration value or file is invalid (unknown key, wrong type, out of range)."""
+
+
+class MapMismatchError(InputError):
+    """Positions (GPS fixes, a recorded truth) do not lie on the map given with them: GPS of
+    another place, latitude and longitude swapped, the map of another city, or another frame."""

@@ -22,6 +22,43 @@ class FormatError(InputError):
     """A data file is malformed; the message names the file and the line."""
 
 
+#: No trajectory of a drive on Earth has a coordinate beyond this (10,000 km); a larger one is a
+#: broken file, and 1e308 would overflow the arithmetic that follows.
+MAX_COORDINATE_M = 1.0e7
+
+
+def read_text(path: str | Path, what: str = "file", error: type[InputError] = FormatError) -> str:
+    """A text file's contents, strictly UTF-8: a missing file, a directory, an unreadable or a
+    binary/non-UTF-8 file raises ``error`` (a :class:`FormatError` by default) naming it."""
+    p = Path(path)
+    if not p.exists():
+        raise error(f"{p}: no such {what}")
+    if p.is_dir():
+        raise error(f"{p}: is a directory, not a {what}")
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise error(f"{p}: cannot read ({exc.strerror})") from None
+    if b"\0" in data:
+        raise error(f"{p}: a binary file, not a {what}")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise error(f"{p}:{line}: not UTF-8 text (byte {exc.start}), not a {what}") from None
+
+
+def read_toml(path: str | Path, what: str = "TOML file", error: type[InputError] = FormatError) -> dict:
+    """A TOML file as a mapping; any problem (see :func:`read_text`, a syntax error) raises ``error``."""
+    import tomllib
+
+    text = read_text(path, what, error)
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: not valid TOML ({exc})") from None
+
+
 def yaw_to_quaternion(yaw_rad: np.ndarray) -> np.ndarray:
     """(N,) yaw → (N, 4) quaternions (qx, qy, qz, qw) of a level body."""
     half = 0.5 * np.asarray(yaw_rad, dtype=float)
@@ -57,28 +94,25 @@ def numeric_rows(path: str | Path, columns: int | None, what: str, increasing: b
     a non-number, NaN or infinity, or (``increasing``) a first value not above the previous one
     raises :class:`FormatError` naming the file and line; ``what`` describes a row."""
     p = Path(path)
-    if not p.exists():
-        raise FormatError(f"{p}: no such file")
     last = -math.inf
-    with open(p, encoding="utf-8", errors="replace") as f:
-        for lineno, line in enumerate(f, start=1):
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            parts = (s.replace(",", " ") if comma_ok else s).split()
-            if columns is not None and len(parts) != columns:
-                raise FormatError(f"{p}:{lineno}: expected {columns} numbers ({what}), got {len(parts)}")
-            try:
-                vals = [float(v) for v in parts]
-            except ValueError:
-                raise FormatError(f"{p}:{lineno}: not a number in {s[:60]!r}") from None
-            if not all(math.isfinite(v) for v in vals):
-                raise FormatError(f"{p}:{lineno}: NaN or infinite value")
-            if increasing:
-                if vals[0] <= last:
-                    raise FormatError(f"{p}:{lineno}: time {vals[0]} does not increase (previous {last})")
-                last = vals[0]
-            yield lineno, vals
+    for lineno, line in enumerate(read_text(p).splitlines(), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = (s.replace(",", " ") if comma_ok else s).split()
+        if columns is not None and len(parts) != columns:
+            raise FormatError(f"{p}:{lineno}: expected {columns} numbers ({what}), got {len(parts)}")
+        try:
+            vals = [float(v) for v in parts]
+        except ValueError:
+            raise FormatError(f"{p}:{lineno}: not a number in {s[:60]!r}") from None
+        if not all(math.isfinite(v) for v in vals):
+            raise FormatError(f"{p}:{lineno}: NaN or infinite value")
+        if increasing:
+            if vals[0] <= last:
+                raise FormatError(f"{p}:{lineno}: time {vals[0]} does not increase (previous {last})")
+            last = vals[0]
+        yield lineno, vals
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -87,7 +121,13 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     A line with other than 8 numbers, a non-finite value or a time not after the previous one
     raises :class:`FormatError` naming the file and the line.
     """
-    rows = [v for _, v in numeric_rows(path, 8, "t tx ty tz qx qy qz qw", comma_ok=True)]
+    rows = []
+    for lineno, v in numeric_rows(path, 8, "t tx ty tz qx qy qz qw", comma_ok=True):
+        if max(abs(c) for c in v[1:4]) > MAX_COORDINATE_M:
+            raise FormatError(f"{path}:{lineno}: a coordinate beyond {MAX_COORDINATE_M:g} m")
+        if not 0.9 <= math.sqrt(sum(c * c for c in v[4:8])) <= 1.1:
+            raise FormatError(f"{path}:{lineno}: the quaternion qx qy qz qw is not of unit length")
+        rows.append(v)
     if not rows:
         raise FormatError(f"{path}: no poses in the file")
     a = np.asarray(rows)
@@ -96,7 +136,14 @@ def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def read_kitti_poses(path: str | Path) -> np.ndarray:
     """KITTI odometry poses: 12 numbers a line (the top 3×4 of T_world_cam), → (N, 4, 4)."""
-    rows = [v for _, v in numeric_rows(path, 12, "a KITTI pose: the top 3×4 of T_world_cam", increasing=False)]
+    rows = []
+    for lineno, v in numeric_rows(path, 12, "a KITTI pose: the top 3×4 of T_world_cam", increasing=False):
+        if max(abs(v[3]), abs(v[7]), abs(v[11])) > MAX_COORDINATE_M:
+            raise FormatError(f"{path}:{lineno}: a coordinate beyond {MAX_COORDINATE_M:g} m")
+        r = np.asarray(v).reshape(3, 4)[:, :3]
+        if not np.allclose(r @ r.T, np.eye(3), atol=0.05):
+            raise FormatError(f"{path}:{lineno}: the 3×3 part is not a rotation")
+        rows.append(v)
     if not rows:
         raise FormatError(f"{path}: no poses in the file")
     m = np.tile(np.eye(4), (len(rows), 1, 1))
@@ -173,9 +220,9 @@ def write_gps_csv(path: str | Path, t_s, lat_deg, lon_deg, alt_m=None, sigma_m=N
 
 
 def _csv_rows(path: Path, header: tuple[str, ...], optional: set[str]):
-    if not path.exists():
-        raise FormatError(f"{path}: no such file")
-    with open(path, newline="", encoding="utf-8", errors="replace") as f:
+    import io
+
+    with io.StringIO(read_text(path, "CSV file"), newline="") as f:
         reader = csv.reader(f)
         try:
             head = [h.strip() for h in next(reader)]
@@ -214,6 +261,9 @@ def read_gps_csv(path: str | Path) -> GpsFixes:
     for lineno, vals in _csv_rows(p, GPS_HEADER, {"alt", "sigma_m"}):
         sigma = vals[4]
         # an empty σ means "the configured one"; a σ given must be one (never silently replaced)
+        lat, lon = vals[1], vals[2]
+        if (math.isfinite(lat) and not -90.0 <= lat <= 90.0) or (math.isfinite(lon) and not -180.0 <= lon <= 180.0):
+            raise FormatError(f"{p}:{lineno}: lat must be within ±90° and lon within ±180°, got {lat:g}, {lon:g}")
         if not math.isnan(sigma) and not 0.0 < sigma <= MAX_GPS_SIGMA_M:
             raise FormatError(f"{p}:{lineno}: sigma_m must be > 0 and at most {MAX_GPS_SIGMA_M:g} m, got {sigma:g} "
                               "(leave it empty for the configured σ)")

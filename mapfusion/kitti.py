@@ -12,36 +12,65 @@ and of its residual.
 from __future__ import annotations
 
 import json
-import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .formats import FormatError, write_gps_csv, write_tum
+from .formats import FormatError, read_text, write_gps_csv, write_tum
 from .metrics import umeyama
 from .projection import LocalProjection
 from .replay import R_BODY_CAMERA
 
 
 def read_kml_track(path: str | Path) -> np.ndarray:
-    """The first LineString of a KML file as (N, 3) lon, lat, alt."""
+    """The first LineString of a KML file as (N, 3) lon, lat, alt.
+
+    Read with an XML parser (expat) that refuses any DOCTYPE: KML needs no DTD, and a DTD is where
+    entity bombs and external entities live. Malformed XML is a :class:`FormatError` with its line.
+    """
+    from xml.parsers import expat
+
     p = Path(path)
-    if not p.exists():
-        raise FormatError(f"{p}: no such file")
-    text = p.read_text(encoding="utf-8", errors="replace")
-    m = re.search(r"<LineString\b.*?<coordinates>(.*?)</coordinates>", text, re.S)
-    if m is None:
+    data = read_text(p, "KML file").encode("utf-8")
+    parser = expat.ParserCreate(namespace_separator=" ")
+    stack: list[str] = []
+    found: dict = {}  # "text": the first LineString's coordinates, "line": where they start
+
+    def refuse(*_args) -> None:
+        raise FormatError(f"{p}:{parser.CurrentLineNumber}: a DOCTYPE or entity declaration (KML needs none)")
+
+    def start(name: str, _attrs) -> None:
+        stack.append(name.rsplit(" ", 1)[-1])
+        if stack[-1] == "coordinates" and "LineString" in stack and "text" not in found:
+            found["parts"], found["line"] = [], parser.CurrentLineNumber
+
+    def end(_name: str) -> None:
+        if stack.pop() == "coordinates" and "parts" in found and "text" not in found:
+            found["text"] = "".join(found.pop("parts"))
+
+    def chars(text: str) -> None:
+        if "parts" in found and stack and stack[-1] == "coordinates":
+            found["parts"].append(text)
+
+    parser.StartDoctypeDeclHandler = refuse
+    parser.EntityDeclHandler = refuse
+    parser.StartElementHandler, parser.EndElementHandler, parser.CharacterDataHandler = start, end, chars
+    try:
+        parser.Parse(data, True)
+    except expat.ExpatError as exc:
+        raise FormatError(f"{p}:{exc.lineno}: not well-formed XML ({expat.ErrorString(exc.code)})") from None
+    if "text" not in found:
         raise FormatError(f"{p}: no LineString with coordinates in the KML")
-    start_line = text[: m.start(1)].count("\n") + 1
+    start_line = found["line"]
     rows = []
-    for i, tok in enumerate(m.group(1).split()):
+    for i, tok in enumerate(found["text"].split()):
         parts = tok.split(",")
         try:
             vals = [float(v) for v in parts]
         except ValueError:
             raise FormatError(f"{p}:{start_line}: coordinate {i + 1} is not lon,lat[,alt]: {tok[:40]!r}") from None
-        if len(vals) not in (2, 3) or not np.all(np.isfinite(vals)):
+        if len(vals) not in (2, 3) or not np.all(np.isfinite(vals)) or abs(vals[0]) > 180 or abs(vals[1]) > 90:
             raise FormatError(f"{p}:{start_line}: coordinate {i + 1} is not lon,lat[,alt]: {tok[:40]!r}")
         rows.append(vals if len(vals) == 3 else vals + [0.0])
     if len(rows) < 3:
@@ -151,7 +180,17 @@ def import_kitti(poses_path: str | Path, times_path: str | Path, kml_path: str |
     gps = np.column_stack([x, y, track[:, 2] - alt0])
     filled = filled_points(track)
     geo = georeference(poses, gps, use=~filled)
+    lever_m = float(np.linalg.norm(geo.lever_arm_cam_m))
+    if geo.residual_rmse_m > MAX_FIT_RESIDUAL_M or lever_m > MAX_LEVER_ARM_M:
+        raise FormatError(f"{kml_path}: the track does not fit the poses of {poses_path} (residual "
+                          f"{geo.residual_rmse_m:.1f} m RMSE, lever arm {lever_m:.1f} m; at most "
+                          f"{MAX_FIT_RESIDUAL_M:g} and {MAX_LEVER_ARM_M:g} m): the track of another sequence?")
     return KittiImport(t, geo.camera_to_enu(poses), geo, track, alt0, filled)
+
+
+#: Limits of a believable georeference: KITTI's five drives fit with 0.11–0.37 m RMSE and lever
+#: arms of 1.1–2.4 m; another sequence's track fits its poses with ~90 m and a 250 m "lever arm".
+MAX_FIT_RESIDUAL_M, MAX_LEVER_ARM_M = 2.0, 5.0
 
 
 def track_at_camera(imp: KittiImport, projection: LocalProjection) -> np.ndarray:

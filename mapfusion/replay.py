@@ -14,7 +14,7 @@ import numpy as np
 from .config import FusionConfig, from_mapping
 from .engine import MapFusion
 from .errors import ConfigError
-from .formats import FormatError, GpsFixes, read_kitti_poses, read_times, read_tum, tum_to_matrices
+from .formats import FormatError, GpsFixes, read_kitti_poses, read_times, read_toml, read_tum, tum_to_matrices
 from .roadmap import RoadMap
 
 
@@ -70,17 +70,10 @@ def read_odometry(path: str | Path, fmt: OdometryFormat = OdometryFormat.tum, ti
 
 def load_fusion_config(path: str | Path | None, **overrides) -> FusionConfig:
     """A FusionConfig from a TOML file: its ``[mapfusion]`` table, or its top level."""
-    import tomllib
-
     data: dict = {}
     if path is not None:
         p = Path(path)
-        if not p.exists():
-            raise ConfigError(f"{p}: no such config file")
-        try:
-            raw = tomllib.loads(p.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"{p}: not valid TOML ({exc})") from None
+        raw = read_toml(p, "config file", ConfigError)
         data = raw.get("mapfusion", raw)
         where = str(p)
     else:

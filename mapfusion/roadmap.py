@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .errors import ConfigError, MapFileError
+from .errors import ConfigError, MapFileError, MapMismatchError
 from .geometry import headings, process_polyline, quadratic_bezier, wrap_angle
 from .osm import DRIVABLE_HIGHWAYS, OsmWay, check_osm_path, read_drivable_ways
 from .projection import LocalProjection
@@ -33,12 +33,18 @@ log = logging.getLogger(__name__)
 CACHE_FORMAT = 5
 
 
+#: The way-point spacing's range (RoadMapConfig.spacing_m).
+MIN_SPACING_M, MAX_SPACING_M = 0.05, 50.0
+
+
 @dataclass(frozen=True)
 class RoadMapConfig:
     """How an OSM file becomes a road map. Every field has a default; all lengths in metres."""
 
     spacing_m: float = 1.0
-    """Way-point spacing after interpolation (paper III.A: "linearly interpolated"; 1 m, DESIGN item 1)."""
+    """Way-point spacing after interpolation (paper III.A: "linearly interpolated"; 1 m, DESIGN item 1).
+    0.05–50 m: finer spacing multiplies a city's way-points past memory (1e-6 m would never finish),
+    coarser leaves junctions without a way-point."""
     smoothing_window_m: float = 5.0
     """Length of the rolling-average window. 5 m keeps every smoothed point within 1.2 m of the
     raw polyline (half a 3 m lane) while rounding OSM's sharp vertices."""
@@ -58,10 +64,8 @@ class RoadMapConfig:
     """ENU origin longitude; None centres the projection on the map's bounding box."""
 
     def __post_init__(self) -> None:
-        for name in ("spacing_m",):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise ConfigError(f"RoadMapConfig.{name} must be a positive number of metres, got {v!r}")
+        if not (np.isfinite(self.spacing_m) and MIN_SPACING_M <= self.spacing_m <= MAX_SPACING_M):
+            raise ConfigError(f"spacing_m must be within {MIN_SPACING_M:g}–{MAX_SPACING_M:g} m, got {self.spacing_m!r}")
         for name in ("smoothing_window_m", "join_radius_m"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
@@ -308,6 +312,22 @@ class RoadMap:
     def lanes(self) -> np.ndarray:
         """Lane count of every way-point's way (N,)."""
         return self.way_lanes[self.way_index]
+
+    def check_covers(self, xy_m: np.ndarray, what: str, margin_m: float = 500.0, min_fraction: float = 0.5) -> None:
+        """Raise :class:`MapMismatchError` naming ``what`` unless at least ``min_fraction`` of the
+        positions (ENU, metres) lie within ``margin_m`` of the map's extent: a drive must be on its map."""
+        xy = np.asarray(xy_m, dtype=float).reshape(-1, 2)
+        xy = xy[np.all(np.isfinite(xy), axis=1)]
+        if not len(xy) or not len(self.xy_m):
+            return
+        lo, hi = self.xy_m.min(0) - margin_m, self.xy_m.max(0) + margin_m
+        inside = np.all((xy >= lo) & (xy <= hi), axis=1)
+        if inside.mean() < min_fraction:
+            far = np.max(np.maximum(lo - xy, xy - hi), axis=1)
+            raise MapMismatchError(
+                f"{what}: {100 * (1 - inside.mean()):.0f}% of the positions lie off the map (median "
+                f"{np.median(far) / 1000:,.1f} km beyond its extent): of another place, latitude and longitude "
+                "swapped, or the map of another city?")
 
     def width_m(self, lane_width_m: float) -> np.ndarray:
         """Road width at every way-point: lanes × ``lane_width_m`` (N,). The map stores lanes only;

@@ -315,7 +315,21 @@ def parse_params(kind: SyntheticKind | str, pairs: list[str]) -> dict:
             raise InputError(f"--param {key!r}: {func.__name__} takes {', '.join(sig.parameters) or 'no parameters'}")
         default = sig.parameters[key].default
         try:
-            out[key] = type(default)(value) if default is not inspect.Parameter.empty else float(value)
+            v = type(default)(value) if default is not inspect.Parameter.empty else float(value)
         except ValueError as exc:
             raise InputError(f"--param {key}={value!r}: not a {type(default).__name__}") from exc
+        lo, hi = PARAM_RANGES[key]
+        if not (math.isfinite(v) and lo <= v <= hi):
+            raise InputError(f"--param {key}={value!r}: must be within {lo:g}–{hi:g}")
+        out[key] = v
     return out
+
+
+#: The generators' parameters' ranges: beyond them a generator makes no sensible map (a grid of
+#: fewer than two streets each way, a road shorter than its junction spacing) or runs for ever.
+PARAM_RANGES: dict[str, tuple[float, float]] = {
+    "cols": (2, 200), "rows": (2, 200), "block_m": (20.0, 2000.0), "radius_m": (5.0, 500.0),
+    "arm_m": (20.0, 5000.0), "offset_m": (6.0, 10.0), "length_m": (50.0, 20000.0), "tunnel_m": (600.0, 10000.0),
+    "bend_deg": (0.0, 90.0), "bend_radius_m": (50.0, 5000.0), "width_km": (0.2, 10.0), "height_km": (0.2, 15.0),
+    "arterial_every": (1, 100),
+}

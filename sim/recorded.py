@@ -49,11 +49,8 @@ def recorded_truth(t_s: np.ndarray, xyz: np.ndarray, yaw_rad: np.ndarray, sc: Sc
     along the path, plus frames under a bridge of the map (nothing tells which road a recorded
     drive was on, so OSM tunnels are not known). Raises InputError when the truth lies off the map.
     """
-    lo, hi = road.xy_m.min(0) - 500.0, road.xy_m.max(0) + 500.0
-    inside = np.all((xyz[:, :2] >= lo) & (xyz[:, :2] <= hi), axis=1)
-    if inside.mean() < 0.5:
-        raise InputError(f"{where}: the truth lies off the map {sc.map} (is it in that map's ENU frame, "
-                         "as mapfusion import kitti writes it for the same map?)")
+    road.check_covers(xyz[:, :2], f"{where}: the truth on the map {sc.map} (is it in that map's ENU frame, "
+                      "as mapfusion import kitti writes it for the same map?)")
     dist = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xyz[:, :2], axis=0).T))))
     zone = np.zeros(len(t_s), dtype=bool)
     for z in sc.tunnels:

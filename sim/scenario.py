@@ -23,6 +23,7 @@ import tomli_w
 
 from mapfusion.config import FusionConfig, from_mapping, param, to_mapping
 from mapfusion.errors import ConfigError, InputError
+from mapfusion.formats import read_toml
 from mapfusion.maps import resolve_map
 
 
@@ -93,7 +94,8 @@ class TrafficConfig:
     background_vehicles: int = param(0, "Other vehicles on random routes, so the ego slows and stops as in real traffic.",
                                      min=0, max=5000)
     fleet: bool = param(False, "Record every vehicle each step (fleet mode), not only the ego.")
-    depart_spread_s: float = param(60.0, "Background vehicles depart uniformly over this many seconds.", unit="s", min=0.0)
+    depart_spread_s: float = param(60.0, "Background vehicles depart uniformly over this many seconds.", unit="s", min=0.0,
+                                   max=86400.0)
 
 
 @dataclass(frozen=True)
@@ -105,7 +107,8 @@ class RouteConfig:
     via_tunnel: bool = param(False, "The random route passes through an OSM tunnel (tunnel=yes / covered=yes), reached "
                              "after a random lead-in of tunnel_after_m; an error on a map without one.")
     tunnel_after_m: float = param(1500.0, "Random driving before the route heads for the tunnel (via_tunnel), so that "
-                                  "GPS initialisation is over before it (about 1 km at town speeds).", unit="m", min=0.0)
+                                  "GPS initialisation is over before it (about 1 km at town speeds).", unit="m", min=0.0,
+                                  max=200000.0)
 
 
 @dataclass(frozen=True)
@@ -124,15 +127,15 @@ class GpsConfig:
                               "drive named by `truth` (KITTI: the RTK track moved to camera 0), at the times mode, "
                               "rate_hz and interval_s select, declared with sigma_m; no noise or outliers are added.")
     interval_s: float = param(5.0, "Period of fixes in interval mode.", unit="s", min=0.0, exclusive_min=True,
-                              source="paper IV.B ('GPS every 5 seconds')")
+                              max=86400.0, source="paper IV.B ('GPS every 5 seconds')")
     rate_hz: float = param(1.0, "Fix rate in continuous mode and during initialisation.", unit="Hz", min=0.0,
                            exclusive_min=True, max=100.0)
     sigma_m: float = param(2.0, "Horizontal σ of a fix (per axis).", unit="m", min=0.0, max=100.0)
     init_window_s: float = param(120.0, "Fixes at rate_hz for this long from the start (init_only: then none; "
                                  "interval: then one every interval_s). 120 s at city speeds pins the scale "
-                                 "to about 0.1% with sigma_m = 2.", unit="s", min=0.0)
+                                 "to about 0.1% with sigma_m = 2.", unit="s", min=0.0, max=86400.0)
     outlier_probability: float = param(0.01, "Probability that a fix is a multipath outlier.", min=0.0, max=1.0)
-    outlier_sigma_m: float = param(30.0, "σ of a multipath outlier's error (per axis).", unit="m", min=0.0)
+    outlier_sigma_m: float = param(30.0, "σ of a multipath outlier's error (per axis).", unit="m", min=0.0, max=10000.0)
     deny_in_tunnels: bool = param(True, "No fix on OSM tunnel=yes / covered roads, nor in the [[tunnels]] zones.")
     deny_under_bridges: bool = param(True, "No fix while passing under a bridge (another road above, layer > own).")
     bridge_lane_width_m: float = param(3.0, "Lane width of the bridges' roads: a frame is under a bridge within half "
@@ -145,21 +148,21 @@ class GpsConfig:
 class ImuParams:
     """``[imu]``: a consumer MEMS IMU (datasheet-class values of a smartphone / automotive-grade 6-axis part)."""
 
-    rate_hz: float = param(100.0, "Sample rate.", unit="Hz", min=1.0)
-    accel_noise_density: float = param(2.0e-3, "Accelerometer white noise density.", unit="m/s²/√Hz")
-    gyro_noise_density: float = param(2.0e-4, "Gyroscope white noise density (0.011 °/s/√Hz).", unit="rad/s/√Hz")
-    accel_bias_sigma: float = param(0.05, "σ of the initial accelerometer bias, per axis.", unit="m/s²")
-    gyro_bias_sigma: float = param(0.005, "σ of the initial gyroscope bias, per axis (0.3 °/s).", unit="rad/s")
-    accel_bias_rw: float = param(5.0e-4, "Accelerometer bias random walk.", unit="m/s³/√Hz")
-    gyro_bias_rw: float = param(2.0e-5, "Gyroscope bias random walk.", unit="rad/s²/√Hz")
+    rate_hz: float = param(100.0, "Sample rate.", unit="Hz", min=1.0, max=1000.0)
+    accel_noise_density: float = param(2.0e-3, "Accelerometer white noise density.", unit="m/s²/√Hz", min=0.0, max=10.0)
+    gyro_noise_density: float = param(2.0e-4, "Gyroscope white noise density (0.011 °/s/√Hz).", unit="rad/s/√Hz", min=0.0, max=1.0)
+    accel_bias_sigma: float = param(0.05, "σ of the initial accelerometer bias, per axis.", unit="m/s²", min=0.0, max=10.0)
+    gyro_bias_sigma: float = param(0.005, "σ of the initial gyroscope bias, per axis (0.3 °/s).", unit="rad/s", min=0.0, max=1.0)
+    accel_bias_rw: float = param(5.0e-4, "Accelerometer bias random walk.", unit="m/s³/√Hz", min=0.0, max=1.0)
+    gyro_bias_rw: float = param(2.0e-5, "Gyroscope bias random walk.", unit="rad/s²/√Hz", min=0.0, max=1.0)
 
 
 @dataclass(frozen=True)
 class TunnelZone:
     """``[[tunnels]]``: a GPS-denied, visually degraded zone by distance along the route."""
 
-    start_m: float = param(0.0, "Start of the zone, distance along the route.", unit="m", min=0.0)
-    end_m: float = param(0.0, "End of the zone, distance along the route.", unit="m", min=0.0)
+    start_m: float = param(0.0, "Start of the zone, distance along the route.", unit="m", min=0.0, max=1e6)
+    end_m: float = param(0.0, "End of the zone, distance along the route.", unit="m", min=0.0, max=1e6)
 
     def __post_init__(self) -> None:
         if not self.end_m > self.start_m:
@@ -216,6 +219,13 @@ class Scenario:
 
     def to_toml(self) -> str:
         return tomli_w.dumps(self.to_toml_dict())
+
+    def content_hash(self) -> str:
+        """SHA-256 of the fully resolved scenario (engine configuration included): what a resumed
+        ``run`` or ``sweep`` compares, so that an edited scenario is run again, not reported stale."""
+        import hashlib
+
+        return hashlib.sha256(self.to_toml().encode()).hexdigest()
 
     def replace(self, **changes) -> Scenario:
         return dataclasses.replace(self, **changes)
@@ -318,31 +328,19 @@ KITTI_FILES = ("poses.txt", "times.txt", "rtk_gps.kml")
 
 
 def _odometry_overrides(table: dict, where: str) -> tuple[tuple[str, float], ...]:
+    """The preset fields an ``[odometry]`` table replaces, each checked against its documented range."""
     from .sensors import OdometryParams
 
     known = {f.name for f in dataclasses.fields(OdometryParams)}
-    out = []
-    for k, v in sorted(table.items()):
-        if k not in known:
-            raise ScenarioError(f"{where}: unknown key odometry.{k} (preset fields: {', '.join(sorted(known))})")
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise ScenarioError(f"{where}: odometry.{k} must be a number, got {v!r}")
-        if v < 0:
-            raise ScenarioError(f"{where}: odometry.{k} must be ≥ 0, got {v!r}")
-        out.append((k, float(v)))
-    return tuple(out)
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise ScenarioError(f"{where}: unknown key odometry.{unknown[0]} (preset fields: {', '.join(sorted(known))})")
+    checked = from_mapping(OdometryParams, table, where, prefix="odometry.")
+    return tuple((k, float(getattr(checked, k))) for k in sorted(table))
 
 
 def _read_toml(path: Path) -> dict:
-    if not path.exists():
-        raise ScenarioError(f"{path}: no such scenario file")
-    try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{path}: not valid TOML ({exc})") from None
-    except OSError as exc:
-        raise ScenarioError(f"{path}: cannot read ({exc.strerror})") from None
+    return read_toml(path, "scenario file", ScenarioError)
 
 
 def load_scenario(path: str | Path) -> Scenario:

@@ -8,16 +8,20 @@ a crash inside SUMO or GTSAM), becomes a failed row; it never costs the other ta
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import multiprocessing as mp
 import os
+import re
+import signal
 import traceback
 from collections.abc import Callable, Iterable
 from multiprocessing.connection import wait
 from pathlib import Path
 from typing import Any
 
+from mapfusion.errors import InputError
 from sim.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -61,7 +65,9 @@ class ResultsLog:
             size = os.fstat(fd).st_size
             if size and os.pread(fd, 1, size - 1) != b"\n":
                 data = b"\n" + data  # a line torn by a dying writer stays on its own line
-            os.write(fd, data)
+            written = os.write(fd, data)
+            if written < len(data):  # a full disk: the torn line is ignored on reading, the run stops
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(self.path))
         finally:
             os.close(fd)
 
@@ -71,11 +77,32 @@ def _failed(exc: BaseException) -> dict:
     return {"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc(limit=5)}
 
 
-def _child(conn, fn: Callable, task: Any) -> None:
+#: Errors of a full disk (or a file-size limit): they stop the whole batch, since every other run
+#: would fail the same way; what finished is kept and the same command resumes.
+DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Linux: this worker gets SIGKILL when the process that started it dies (SIGKILL, SIGTERM, a
+    crash), so no worker outlives ``run`` to race a resumed run for the same run directories."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: workers end with their task
+        return
+    if os.getppid() != parent_pid:  # the parent died before the call took effect
+        os._exit(1)
+
+
+def _child(conn, fn: Callable, task: Any, parent_pid: int) -> None:
+    _die_with_parent(parent_pid)
     try:
         out = fn(task)
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, never lost
         out = {"__failed__": _failed(exc)}
+        if isinstance(exc, OSError) and exc.errno in DISK_FULL:
+            out["__failed__"]["errno"], out["__failed__"]["filename"] = exc.errno, exc.filename
     try:
         conn.send(out)
     finally:
@@ -101,36 +128,68 @@ def run_tasks(tasks: list[Any], fn: Callable[[Any], dict | list[dict]], workers:
     ctx = mp.get_context("fork")
     pending = list(tasks)
     running: dict[Any, tuple] = {}  # pipe → (process, task)
-    while pending or running:
-        while pending and len(running) < max(1, workers):
-            task = pending.pop(0)
-            r, w = ctx.Pipe(duplex=False)
-            p = ctx.Process(target=_child, args=(w, fn, task), daemon=True)
-            p.start()
-            w.close()
-            running[r] = (p, task)
-        for r in wait(list(running)):
-            p, task = running.pop(r)
-            try:
-                out = r.recv()
-            except (EOFError, OSError):  # the process died before it could answer
-                out = None
-            r.close()
-            p.join()
-            if out is None:
-                code = p.exitcode
-                why = f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
-                on_failure(task, {"error": f"worker process died ({why})"})
-            elif isinstance(out, dict) and "__failed__" in out:
-                on_failure(task, out["__failed__"])
-            else:
-                on_rows(task, _as_rows(out))
+    try:
+        while pending or running:
+            while pending and len(running) < max(1, workers):
+                task = pending.pop(0)
+                r, w = ctx.Pipe(duplex=False)
+                p = ctx.Process(target=_child, args=(w, fn, task, os.getpid()), daemon=True)
+                p.start()
+                w.close()
+                running[r] = (p, task)
+            for r in wait(list(running)):
+                p, task = running.pop(r)
+                try:
+                    out = r.recv()
+                except (EOFError, OSError):  # the process died before it could answer
+                    out = None
+                r.close()
+                p.join()
+                if out is None:
+                    code = p.exitcode
+                    why = f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+                    on_failure(task, {"error": f"worker process died ({why})"})
+                elif isinstance(out, dict) and "__failed__" in out:
+                    if out["__failed__"].get("errno") in DISK_FULL:  # stop: the others would fail alike
+                        code = out["__failed__"]["errno"]
+                        raise OSError(code, os.strerror(code), out["__failed__"].get("filename"))
+                    on_failure(task, out["__failed__"])
+                else:
+                    on_rows(task, _as_rows(out))
+    finally:  # stopped early (a full disk, an interrupt): no worker is left running
+        for p, _ in running.values():
+            if p.is_alive():
+                p.kill()
+                p.join()
+
+
+#: A Dask scheduler's address: TCP or TLS, host and port. Dask unpickles what the scheduler sends,
+#: so a scheduler is trusted like code; no other transport is accepted.
+_SCHEDULER = re.compile(r"(tcp|tls)://(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9.-]+):([0-9]{1,5})")
+
+#: Seconds to wait for the scheduler before giving up (before any run starts).
+SCHEDULER_TIMEOUT_S = 10
+
+
+def check_scheduler(address: str) -> str:
+    """``address`` if it is ``tcp://HOST:PORT`` or ``tls://HOST:PORT``; an InputError otherwise."""
+    m = _SCHEDULER.fullmatch(address)
+    if not m or not 0 < int(m.group(3)) < 65536:
+        raise InputError(f"--scheduler {address!r}: expected tcp://HOST:PORT or tls://HOST:PORT (a Dask scheduler; "
+                         "it is trusted like code)")
+    return address
 
 
 def _run_dask(tasks, fn, scheduler, on_rows, on_failure) -> None:
     from dask.distributed import Client, as_completed  # only here: without --scheduler nothing of Dask loads
 
-    with Client(scheduler) as client:
+    check_scheduler(scheduler)
+    try:
+        client = Client(scheduler, timeout=SCHEDULER_TIMEOUT_S)
+    except (OSError, TimeoutError) as exc:
+        raise InputError(f"--scheduler {scheduler}: cannot connect within {SCHEDULER_TIMEOUT_S} s "
+                         f"({type(exc).__name__})") from None
+    with client:
         futures = {client.submit(fn, task, pure=False): task for task in tasks}
         for fut in as_completed(futures):
             task = futures[fut]
@@ -144,16 +203,59 @@ def _run_dask(tasks, fn, scheduler, on_rows, on_failure) -> None:
 
 # ----------------------------------------------------------------------------- scenario runs
 def run_one(job: tuple[Scenario, str | None, bool]) -> dict:
-    """One scenario end to end (a task of :func:`run_tasks`); bad input becomes a failed row."""
-    from mapfusion.errors import InputError
+    """One scenario end to end (a task of :func:`run_tasks`); bad input becomes a failed row. The
+    run directory is written under a temporary name and renamed when complete, so a directory
+    under its own name is always whole (a resumed run trusts it)."""
+    import shutil
 
     from .pipeline import run_scenario
 
     sc, out_dir, plot = job
+    digest = sc.content_hash()
     try:
-        return run_scenario(sc, None if out_dir is None else Path(out_dir) / sc.name, plot=plot).metrics
+        if out_dir is None:
+            m = run_scenario(sc).metrics
+        else:
+            final = Path(out_dir) / sc.name
+            partial = Path(out_dir) / f".{sc.name}.partial-{os.getpid()}"
+            shutil.rmtree(partial, ignore_errors=True)
+            m = run_scenario(sc, partial, plot=plot).metrics
+            if final.exists():  # an earlier, stale or interrupted, run of this name
+                shutil.rmtree(final)
+            partial.rename(final)
     except InputError as exc:
-        return {"scenario": sc.name, "seed": sc.seed, "error": str(exc)}
+        m = {"scenario": sc.name, "seed": sc.seed, "error": str(exc)}
+    return {**m, "scenario_sha256": digest}
+
+
+def remove_orphaned_partials(out_dir: str | Path) -> list[Path]:
+    """Remove the partial run directories (``.NAME.partial-PID``) whose writing process is gone."""
+    import shutil
+
+    removed = []
+    for d in Path(out_dir).glob(".*.partial-*"):
+        try:
+            os.kill(int(d.name.rsplit("-", 1)[1]), 0)
+            continue  # still being written
+        except ProcessLookupError:
+            pass
+        except (ValueError, PermissionError):
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed.append(d)
+    return removed
+
+
+def plan_runs(scenarios: Iterable[Scenario], results_path: str | Path) -> tuple[list[Scenario], list[str]]:
+    """The scenarios ``results.jsonl`` has no finished row for, with this very content (name and
+    :meth:`Scenario.content_hash`), and the names among them whose finished row is of an earlier
+    content (the scenario file or its engine configuration was edited since)."""
+    finished: dict[str, set] = {}
+    for r in ResultsLog(results_path).rows():
+        if "error" not in r and "scenario" in r:
+            finished.setdefault(r["scenario"], set()).add(r.get("scenario_sha256"))
+    todo = [sc for sc in scenarios if sc.content_hash() not in finished.get(sc.name, set())]
+    return todo, [sc.name for sc in todo if sc.name in finished]
 
 
 def run_many(scenarios: Iterable[Scenario], workers: int = 2, out_dir: str | Path | None = None, plot: bool = False,
@@ -185,8 +287,8 @@ def run_logged(scenarios: Iterable[Scenario], out_dir: str | Path, workers: int 
     appended as it finishes. Returns the latest row of every scenario and how many ran now."""
     scenarios = list(scenarios)
     results = ResultsLog(Path(out_dir) / "results.jsonl")
-    done = results.done()
-    todo = [sc for sc in scenarios if sc.name not in done]
+    todo, _ = plan_runs(scenarios, results.path)
+    remove_orphaned_partials(out_dir)
 
     def finished(job, rows):
         for row in rows:
@@ -195,9 +297,10 @@ def run_logged(scenarios: Iterable[Scenario], out_dir: str | Path, workers: int 
                 on_row(row)
 
     def failed(job, err):
-        finished(job, [{"scenario": job[0].name, "seed": job[0].seed, **err}])
+        finished(job, [{"scenario": job[0].name, "seed": job[0].seed, "scenario_sha256": job[0].content_hash(), **err}])
 
     run_tasks([(sc, str(out_dir), plot) for sc in todo], fn, workers=workers, on_rows=finished,
               on_failure=failed, scheduler=scheduler)
-    latest = results.latest()
+    current = {(sc.name, sc.content_hash()) for sc in scenarios}
+    latest = {r["scenario"]: r for r in results.rows() if (r.get("scenario"), r.get("scenario_sha256")) in current}
     return [latest[sc.name] for sc in scenarios if sc.name in latest], len(todo)

@@ -6,6 +6,8 @@ internal failure exits 1. Heavy modules are imported inside the commands so ``--
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import math
 import os
@@ -43,7 +45,7 @@ err_console = Console(stderr=True)
 
 def _fail(message: str, code: int = 2) -> None:
     """One clear line on stderr and the exit code (2: bad input)."""
-    err_console.print(f"[bold red]error:[/] {message}", highlight=False, soft_wrap=True)
+    _one_line(message)
     raise typer.Exit(code)
 
 
@@ -62,6 +64,17 @@ def _check_output_file(path: Path, option: str, inputs: dict[str, Path | str | N
             continue
         if Path(given).resolve() == path.resolve():
             _fail(f"{option} {path} is also {name}: it would be overwritten")
+
+
+def _check_output_dir(path: Path, option: str, inputs: list[Path] | tuple[Path, ...] = ()) -> None:
+    """Refuse, before any work, an output folder that is an existing file (an input, or anything
+    else: it would be replaced) or lies where nothing can be created."""
+    if path.exists() and not path.is_dir():
+        named = next((p for p in inputs if p.exists() and p.resolve() == path.resolve()), None)
+        _fail(f"{option} {path} is {'an input' if named else 'a file'}, not a folder: it would be overwritten")
+    existing = next((a for a in [path, *path.absolute().parents] if a.exists()), None)
+    if existing is None or not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        _fail(f"{option} {path}: cannot create a folder under {existing}")
 
 
 @app.callback()
@@ -98,7 +111,7 @@ def _stats_table(stats, title: str) -> Table:
 def maps_build(
     osm: Annotated[str, typer.Argument(help="OSM file (.osm, .osm.gz, .osm.bz2, .osm.pbf) or a built-in map name.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the statistics as JSON.")] = False,
-    spacing_m: Annotated[float, typer.Option(help="Way-point spacing in metres.")] = 1.0,
+    spacing_m: Annotated[float, typer.Option(help="Way-point spacing in metres.", min=0.05, max=50.0)] = 1.0,
     no_cache: Annotated[bool, typer.Option("--no-cache", help="Rebuild even when a cached map exists.")] = False,
 ) -> None:
     """Build the processed road map of an OSM file (cached) and print its statistics."""
@@ -155,12 +168,12 @@ def maps_generate(
 def maps_stress(
     osm: Annotated[str, typer.Argument(help="OSM file or built-in map name.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON.")] = False,
-    offset_extra_m: Annotated[float, typer.Option(help="Across-road offsets reach ±(road width + this), metres.", min=0.0)] = 3.0,
-    heading_error_deg: Annotated[float, typer.Option(help="Heading errors uniform in ± this, degrees.", min=0.0)] = 20.0,
-    poses_per_station: Annotated[int, typer.Option(help="Random poses per station and direction.", min=1)] = 4,
-    radius_m: Annotated[float, typer.Option(help="Matcher search radius, metres.")] = 20.0,
-    angle_weight: Annotated[float, typer.Option("--angle-weight-m-per-deg", help="w in D = E + w·A, metres per degree.", min=0.0)] = 1.0,
-    lane_width_m: Annotated[float, typer.Option(help="Lane width, metres (road width = lanes × lane width).")] = 3.0,
+    offset_extra_m: Annotated[float, typer.Option(help="Across-road offsets reach ±(road width + this), metres.", min=0.0, max=50.0)] = 3.0,
+    heading_error_deg: Annotated[float, typer.Option(help="Heading errors uniform in ± this, degrees.", min=0.0, max=180.0)] = 20.0,
+    poses_per_station: Annotated[int, typer.Option(help="Random poses per station and direction.", min=1, max=1000)] = 4,
+    radius_m: Annotated[float, typer.Option(help="Matcher search radius, metres.", min=0.5, max=500.0)] = 20.0,
+    angle_weight: Annotated[float, typer.Option("--angle-weight-m-per-deg", help="w in D = E + w·A, metres per degree.", min=0.0, max=100.0)] = 1.0,
+    lane_width_m: Annotated[float, typer.Option(help="Lane width, metres (road width = lanes × lane width).", min=0.5, max=10.0)] = 3.0,
     seed: Annotated[int, typer.Option(help="Seed of offsets and heading errors.")] = 0,
     sequence: Annotated[bool, typer.Option("--sequence", help="Also drive through every junction (every entering road "
                                            "to every other road, errors correlated along the drive) and match the "
@@ -246,10 +259,14 @@ def scenarios_generate(
         import tomllib
 
         fam = expand_family(tomllib.loads(text), str(out), Path.cwd())  # validates every run now
+        if out.is_dir():
+            raise InputError(f"--out {out} is a directory")
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(text)
     except InputError as exc:
         _fail(str(exc))
+    except OSError as exc:
+        _fail(f"--out {out}: cannot write ({exc.strerror})")
     console.print(f"wrote family {family} ({len(fam.scenarios) + len(fam.unavailable)} runs) to {out}")
     if fam.unavailable:
         err_console.print(f"[yellow]{len(fam.unavailable)} of them cannot run here:[/] {fam.unavailable[0][1]}", highlight=False)
@@ -272,12 +289,14 @@ def import_kitti_cmd(
     from mapfusion.maps import resolve_map
     from mapfusion.roadmap import RoadMap
 
+    _check_output_dir(out, "--out", [poses, times, gps])
+    if gps_at not in ("camera", "antenna"):
+        _fail(f"--gps-at is camera or antenna, got {gps_at!r}")
     try:
         mp = resolve_map(map_path) if map_path else resolve_map(poses.parent / "map.osm")
         road = RoadMap.from_osm(mp)
-        if gps_at not in ("camera", "antenna"):
-            raise InputError(f"--gps-at is camera or antenna, got {gps_at!r}")
         imp = import_kitti(poses, times, gps, road.projection)
+        road.check_covers(imp.truth_enu[:, :2, 3], f"{gps}: the georeferenced drive on the map {mp}")
         write_import(out, imp, road.projection, str(Path(mp).resolve()), gps_at_camera=gps_at == "camera")
     except InputError as exc:
         _fail(str(exc))
@@ -303,6 +322,7 @@ def simulate(
 
     from .pipeline import simulate_scenario, write_simulation
 
+    _check_output_dir(out, "--out", [scenario] + ([truth] if truth else []))
     try:
         sc = load_scenario(scenario)
         if truth is not None:
@@ -428,8 +448,8 @@ def evaluate(
     truth: Annotated[Path, typer.Option("--truth", help="Ground truth (TUM).")],
     estimate: Annotated[Path, typer.Option("--estimate", help="Estimate (TUM), e.g. from mapfusion fuse.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON.")] = False,
-    max_dt_s: Annotated[float, typer.Option(help="Poses match when their times differ by at most this, seconds.")] = 0.02,
-    delocalization_m: Annotated[float, typer.Option(help="ATE above this counts as de-localised, metres.")] = 20.0,
+    max_dt_s: Annotated[float, typer.Option(help="Poses match when their times differ by at most this, seconds.", min=1e-6, max=10.0)] = 0.02,
+    delocalization_m: Annotated[float, typer.Option(help="ATE above this counts as de-localised, metres.", min=0.01, max=1e6)] = 20.0,
 ) -> None:
     """ATE (the paper's), online error (no alignment; lateral and longitudinal parts) and RPE per 100 m."""
     from .pipeline import evaluate_files
@@ -447,6 +467,16 @@ def evaluate(
     for k, v in out.items():
         t.add_row(k, "–" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v)))
     console.print(t)
+
+
+def _check_scheduler(scheduler: str | None) -> None:
+    from .batch import check_scheduler
+
+    if scheduler is not None:
+        try:
+            check_scheduler(scheduler)
+        except InputError as exc:
+            _fail(str(exc))
 
 
 def _default_workers() -> int:
@@ -506,14 +536,19 @@ def run(
     """Each scenario (or every run of a family): simulate, baseline and Map-Fusion, evaluate; one run
     directory each, results.jsonl (a line per finished run, appended at once), and the paper-style
     table. Runs already in results.jsonl without error are skipped: the same command resumes."""
-    from .batch import ResultsLog, run_logged
+    from .batch import plan_runs, run_logged
 
+    _check_output_dir(out, "--out", paths)
+    _check_scheduler(scheduler)
     scenarios = _load_runs(paths)
     out.mkdir(parents=True, exist_ok=True)
-    done = ResultsLog(out / "results.jsonl").done()
-    left = sum(sc.name not in done for sc in scenarios)
+    todo, changed = plan_runs(scenarios, out / "results.jsonl")
+    left = len(todo)
     if left < len(scenarios):
         err_console.print(f"resuming: {len(scenarios) - left} of {len(scenarios)} runs already in {out / 'results.jsonl'}")
+    if changed:
+        err_console.print(f"running again {len(changed)} run(s) whose scenario changed since their result: "
+                          + ", ".join(changed[:5]) + (" ..." if len(changed) > 5 else ""), highlight=False)
     with _RunBar(left) as bar:
         rows, _ = run_logged(scenarios, out, workers=workers or _default_workers(), plot=not no_plot,
                              scheduler=scheduler, on_row=lambda row: bar.advance("error" in row))
@@ -544,6 +579,8 @@ def sweep(
     Map-Fusion ATE and prints the grid."""
     from .sweep import plan_sweep, plot_heatmap, run_sweep
 
+    _check_output_dir(out, "--out", paths)
+    _check_scheduler(scheduler)
     scenarios = _load_runs(paths)
     try:
         plan = plan_sweep(scenarios, param or [], variant or [], out)
@@ -552,6 +589,9 @@ def sweep(
     out.mkdir(parents=True, exist_ok=True)
     if plan.left < plan.total:
         err_console.print(f"resuming: {plan.total - plan.left} of {plan.total} fusions already in {plan.results_path}")
+    if plan.changed:
+        err_console.print(f"running again {len(plan.changed)} scenario(s) changed since their results: "
+                          + ", ".join(plan.changed[:5]) + (" ..." if len(plan.changed) > 5 else ""), highlight=False)
     with _RunBar(plan.left, "fusions") as bar:
         table, sims = run_sweep(plan, workers or _default_workers(), scheduler, on_row=lambda r: bar.advance("error" in r))
     grid, left = plan.grid, plan.left
@@ -586,18 +626,28 @@ def tune(
     """Optuna over lane width, yaw σ, angle weight and search radius: objective = mean Map-Fusion ATE
     plus a penalty per de-localisation, each scenario simulated once. The paper's defaults are the
     first trial; prints the best parameters against them and writes a sensitivity plot."""
-    from .sweep import PAPER_DEFAULTS, parse_ranges, parse_starts, plot_sensitivity, tune as run_study
+    from .sweep import (PAPER_DEFAULTS, fail_orphaned_trials, open_storage, parse_ranges, parse_starts,
+                        plot_sensitivity, tune as run_study)
 
+    _check_output_dir(out, "--out", paths)
     try:
         ranges = parse_ranges(range_ or [])
         starts = parse_starts(start or [], ranges)
         scenarios = _load_runs(paths)
+        name = study or paths[0].stem
+        opened = open_storage(storage) if storage else None  # a shared storage: checked before any work
         out.mkdir(parents=True, exist_ok=True)
         url = storage or f"sqlite:///{(out / 'study.db').resolve()}"
-        name = study or paths[0].stem
-        with _RunBar(trials, "trials") as bar:
-            res = run_study(scenarios, trials, url, name, ranges, penalty_m, starts, seed,
-                            on_trial=lambda n, v: bar.advance(not math.isfinite(v)))
+        with contextlib.ExitStack() as stack:
+            if opened is None:  # our own study.db: while we hold its lock no other tune uses it
+                stack.enter_context(_exclusive_lock(out / "study.db.lock", "--out"))
+                opened = open_storage(url, "--out")
+                orphans = fail_orphaned_trials(opened, name)
+                if orphans:
+                    err_console.print(f"{orphans} trial(s) left running by a killed tune marked failed")
+            with _RunBar(trials, "trials") as bar:
+                res = run_study(scenarios, trials, opened, name, ranges, penalty_m, starts, seed,
+                                on_trial=lambda n, v: bar.advance(not math.isfinite(v)))
     except InputError as exc:
         _fail(str(exc))
     t = Table(title=f"study {res.study_name}: {res.trials} trials over {len(scenarios)} run(s) ({res.storage})")
@@ -612,6 +662,19 @@ def tune(
     console.print(t)
     png = plot_sensitivity(url, name, out / "tune_sensitivity.png")
     console.print(f"sensitivity plot: {png}")
+
+
+@contextlib.contextmanager
+def _exclusive_lock(path: Path, option: str):
+    """An exclusive lock on ``path`` for the block (released when the process dies, however it dies)."""
+    import fcntl
+
+    with open(path, "a") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            _fail(f"{option} {path.parent}: another mapfusion tune is working on this study")
+        yield
 
 
 @app.command()
@@ -654,6 +717,7 @@ def demo(
     from .pipeline import run_scenario
     from sim.scenario import scenario_from_dict
 
+    _check_output_dir(out, "--out")
     sc = scenario_from_dict(DEMO_SCENARIO, "the demo scenario")
     with err_console.status("SUMO drive, sensors, baseline and Map-Fusion ..."):
         outcome = run_scenario(sc, out)
@@ -711,14 +775,49 @@ def _print_json(obj, indent: int | None = None) -> None:
     print(json.dumps(_finite_or_null(obj), indent=indent, allow_nan=False), flush=True)
 
 
-def main() -> None:
-    """Console-script entry point."""
+def main(argv: list[str] | None = None) -> int:
+    """Console-script entry point: the exit code (0 done, 1 an internal failure or a full disk, 2 bad input).
+
+    Every refusal is one line on stderr: Typer's own usage errors (an unknown option, a bad value) are
+    caught here and printed as one line rather than its boxed panel.
+    """
+    # click's exceptions, wherever this typer keeps them (recent typer vendors click)
+    click_errors = sys.modules[typer.BadParameter.__module__]
     try:
-        app()
+        rv = app(args=argv, prog_name="mapfusion", standalone_mode=False)
+        return rv if isinstance(rv, int) else 0
+    except click_errors.NoArgsIsHelpError as exc:  # a bare group: its help, as --help would print
+        print(exc.ctx.get_help())
+        return 0
+    except click_errors.UsageError as exc:
+        where = f" (see 'mapfusion {exc.ctx.command_path.partition(' ')[2]} --help')".replace("  ", " ") if exc.ctx else ""
+        _one_line(f"{exc.format_message()}{where}")
+        return 2
+    except click_errors.ClickException as exc:
+        _one_line(exc.format_message())
+        return exc.exit_code
+    except typer.Abort:
+        _one_line("aborted")
+        return 1
     except InputError as exc:  # any bad input a command did not catch itself
-        err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
-        sys.exit(2)
+        _one_line(str(exc))
+        return 2
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+            _one_line(f"{exc.strerror}{f' ({exc.filename})' if exc.filename else ''}: stopped; what finished is kept "
+                      "and the same command resumes")
+            return 1
+        if exc.errno == errno.EPIPE:
+            return 1
+        raise
+
+
+def _one_line(message: str) -> None:
+    """The message on one line (rich markup escaped: messages name TOML tables such as [imu])."""
+    from rich.markup import escape
+
+    err_console.print(f"[bold red]error:[/] {escape(' '.join(message.split()))}", highlight=False, soft_wrap=True)
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

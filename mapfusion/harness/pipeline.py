@@ -211,6 +211,9 @@ def fuse_recorded(inputs: RecordedInputs, cfg: FusionConfig, progress=None) -> F
     if inputs.imu is not None:
         read_imu_csv(inputs.imu)
     road = RoadMap.from_osm(resolve_map(inputs.map))
+    if fixes is not None and len(fixes):
+        road.check_covers(np.column_stack(road.projection.to_enu(fixes.lat_deg, fixes.lon_deg)),
+                          f"{inputs.gps}: the GPS fixes on the map {inputs.map}")
     return fuse(road, t_odo, poses, fixes, cfg, progress=progress)
 
 

@@ -35,6 +35,21 @@ def _truth(run: Path):
     return t, xyz[:, :2], np.zeros(len(t), dtype=bool)
 
 
+def _json(path: Path) -> dict:
+    """A run's JSON file (metrics, fusion events) as a mapping; {} when absent; InputError when broken."""
+    from mapfusion.formats import read_text
+
+    if not path.exists():
+        return {}
+    try:
+        data = json.loads(read_text(path, "JSON file", InputError))
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}:{exc.lineno}: not valid JSON ({exc.msg})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a JSON object")
+    return data
+
+
 def _spans(mask: np.ndarray):
     """(start, end) index pairs of the True runs of a mask."""
     m = np.concatenate(([False], mask, [False])).astype(int)
@@ -53,6 +68,13 @@ def plot_run(run_dir: str | Path, out: str | Path, road=None) -> Path:
     run = Path(run_dir)
     if not (run / "truth.csv").exists() and not (run / "truth.tum").exists():
         raise InputError(f"{run}: not a run directory (no truth.csv or truth.tum)")
+    ext = Path(out).suffix.lower().lstrip(".")
+    formats = plt.figure().canvas.get_supported_filetypes()
+    plt.close("all")
+    if ext not in formats:
+        raise InputError(f"--out {out}: unknown picture format {ext!r} (known: {', '.join(sorted(formats))})")
+    metrics = _json(run / "metrics.json")
+    events = _json(run / "fusion_events.json")
     t, xy, tunnel = _truth(run)
     dist = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))))
     if road is None and (run / "scenario.toml").exists():
@@ -76,7 +98,6 @@ def plot_run(run_dir: str | Path, out: str | Path, road=None) -> Path:
     ax.plot(xy[:, 0], xy[:, 1], "k-", lw=1.6, label="truth", zorder=3)
     styles = {"estimate_odometry.tum": ("tab:blue", "odometry (no map)"),
               "estimate_mapfusion.tum": ("tab:red", "Map-Fusion")}
-    metrics = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").exists() else {}
     for name, (color, label) in styles.items():
         p = run / name
         if not p.exists():
@@ -89,8 +110,8 @@ def plot_run(run_dir: str | Path, out: str | Path, road=None) -> Path:
         ia, ib = associate(te, t)
         err = np.hypot(*(xe[ia, :2] - xy[ib]).T)
         ax_err.plot(dist[ib], err, "-", color=color, lw=1.0, label=label)
-        if key == "mapfusion" and (run / "fusion_events.json").exists():
-            ev = json.loads((run / "fusion_events.json").read_text())
+        if key == "mapfusion" and events:
+            ev = events
             tp = np.asarray(ev.get("map_prior_t", []))
             if len(tp):
                 ja, _ = associate(te, tp, 1e-3) if len(tp) >= 1 else (np.array([], int), None)

@@ -62,6 +62,8 @@ class StressConfig:
             raise ConfigError("stress: need at least one pose per station and positive station distances")
         if not self.radius_m > 0:
             raise ConfigError(f"stress: radius_m must be > 0, got {self.radius_m}")
+        if not 0.5 <= self.lane_width_m <= 10.0:
+            raise ConfigError(f"stress: lane_width_m must be within 0.5–10 m, got {self.lane_width_m}")
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,7 @@ import numpy as np
 
 from mapfusion.config import FusionConfig, from_mapping, to_mapping
 from mapfusion.errors import ConfigError, InputError
+from mapfusion.formats import read_toml
 
 from sim.scenario import Scenario
 
@@ -85,7 +86,6 @@ def parse_variants(specs: list[str]) -> dict[str, dict]:
     """``["faithful", "pose3=pose3.toml"]`` → {name: overrides}. A variant is a built-in name
     (``defaults``, ``faithful``) or NAME=FILE.toml whose ``[mapfusion]`` table (or top-level keys)
     overrides the scenario's engine configuration; every one is validated."""
-    import tomllib
 
     out: dict[str, dict] = {}
     for spec in specs:
@@ -98,11 +98,9 @@ def parse_variants(specs: list[str]) -> dict[str, dict]:
             if not name or not path:
                 raise InputError(f"--variant {spec!r}: expected NAME=FILE.toml")
             try:
-                data = tomllib.loads(Path(path).read_text())
-            except OSError as exc:
-                raise InputError(f"--variant {name}: cannot read {path}: {exc.strerror}") from None
-            except tomllib.TOMLDecodeError as exc:
-                raise InputError(f"--variant {name}: {path}: {exc}") from None
+                data = read_toml(path, "TOML file")
+            except InputError as exc:
+                raise InputError(f"--variant {name}: {exc}") from None
             params = data.get("mapfusion", data)
             if not isinstance(params, dict):
                 raise InputError(f"--variant {name}: {path}: [mapfusion] must be a table")
@@ -127,8 +125,8 @@ def grid_points(grid: dict[str, list]) -> list[dict]:
 
 
 def row_key(row: dict) -> str:
-    """A sweep row's identity: scenario and grid point."""
-    return f"{row['scenario']}|{json.dumps(row.get('params', {}), sort_keys=True)}"
+    """A sweep row's identity: scenario (its name and content hash) and grid point."""
+    return f"{row['scenario']}|{row.get('scenario_sha256')}|{json.dumps(row.get('params', {}), sort_keys=True)}"
 
 
 #: Fields the baseline (map priors off) never reads: changing them leaves it as it is.
@@ -159,10 +157,12 @@ def sweep_task(job: tuple[Scenario, list[dict], dict[str, dict]]) -> list[dict]:
     from .pipeline import simulate_scenario
 
     sc, points, variants = job
+    digest = sc.content_hash()
     try:
         sim = simulate_scenario(sc)
     except InputError as exc:
-        return [{"scenario": sc.name, "seed": sc.seed, "params": p, "error": str(exc)} for p in points]
+        return [{"scenario": sc.name, "seed": sc.seed, "scenario_sha256": digest, "params": p, "error": str(exc)}
+                for p in points]
     rows, baselines = [], {}
     for i, params in enumerate(points):
         try:
@@ -172,6 +172,7 @@ def sweep_task(job: tuple[Scenario, list[dict], dict[str, dict]]) -> list[dict]:
             m = {"scenario": sc.name, "seed": sc.seed, "error": f"{type(exc).__name__}: {exc}",
                  "traceback": traceback.format_exc()}
         m["params"] = params
+        m["scenario_sha256"] = digest
         m["simulated"] = i == 0
         rows.append(m)
     return rows
@@ -251,24 +252,22 @@ def objective_value(rows: list[dict], penalty_m: float) -> tuple[float, float, i
     return mean + penalty_m * deloc, mean, deloc
 
 
-def tune(scenarios: list[Scenario], trials: int, storage: str, study_name: str,
+def tune(scenarios: list[Scenario], trials: int, storage, study_name: str,
          ranges: dict[str, tuple[float, float]] | None = None, penalty_m: float = 50.0,
          starts: list[dict] | None = None, seed: int = 0,
          on_trial: Callable[[int, float], None] | None = None) -> TuneResult:
     """Optuna (TPE, seeded) over ``ranges``; the paper's defaults and any ``starts`` are tried
-    first. The study lives in ``storage`` (e.g. SQLite), so a second call resumes it and
-    several processes can share it."""
+    first. The study lives in ``storage`` (a URL, e.g. SQLite, or an opened storage), so a second
+    call resumes it and several processes can share it."""
     import optuna
 
     from .pipeline import simulate_scenario
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     ranges = ranges or TUNE_RANGES
-    for k, (lo, hi) in ranges.items():
-        with_params(FusionConfig(), {k: float(lo)}, f"--range {k}")
-        with_params(FusionConfig(), {k: float(hi)}, f"--range {k}")
-        if not lo < hi:
-            raise ConfigError(f"--range {k}: the low end {lo} must be below the high end {hi}")
+    check_ranges(ranges)
+    if isinstance(storage, str):
+        storage = open_storage(storage)
     sims = []
     for sc in scenarios:  # simulated once, fused at every trial
         sims.append(simulate_scenario(sc))
@@ -299,7 +298,7 @@ def tune(scenarios: list[Scenario], trials: int, storage: str, study_name: str,
     default = next((t for t in study.trials if t.user_attrs.get("start") == "paper defaults" and t.value is not None), None)
     return TuneResult(best.params, best.value, best.user_attrs.get("mean_ate_m", math.nan),
                       default.value if default else None, default.user_attrs.get("mean_ate_m") if default else None,
-                      len(study.trials), study_name, storage)
+                      len(study.trials), study_name, str(getattr(storage, "url", storage)))
 
 
 def plot_sensitivity(storage: str, study_name: str, path: str | Path) -> Path:
@@ -345,7 +344,61 @@ def parse_ranges(specs: list[str]) -> dict[str, tuple[float, float]]:
             ranges[name.strip()] = (float(lo), float(hi))
         except ValueError:
             raise InputError(f"--range {spec!r}: LOW and HIGH must be numbers") from None
+    check_ranges(ranges)
     return ranges
+
+
+def check_ranges(ranges: dict[str, tuple[float, float]]) -> None:
+    """Every range names a FusionConfig field, both ends are valid values of it, and LOW < HIGH."""
+    for k, (lo, hi) in ranges.items():
+        with_params(FusionConfig(), {k: float(lo)}, f"--range {k}")
+        with_params(FusionConfig(), {k: float(hi)}, f"--range {k}")
+        if not lo < hi:
+            raise ConfigError(f"--range {k}: the low end {lo:g} must be below the high end {hi:g}")
+
+
+#: Optuna's heartbeat: a trial whose process died (killed, out of memory) stops beating, and after
+#: the grace period the next trial of any process on the study marks it failed.
+HEARTBEAT_S, GRACE_S = 30, 120
+
+
+def open_storage(url: str, option: str = "--storage"):
+    """The Optuna storage at ``url``, opened now (driver loaded, database reachable) so that a bad
+    URL is refused before any simulation; an :class:`InputError` naming ``option`` otherwise."""
+    import optuna
+    import sqlalchemy.exc
+    from sqlalchemy.engine import make_url
+
+    try:
+        u = make_url(url)
+    except (sqlalchemy.exc.ArgumentError, ValueError) as exc:
+        raise InputError(f"{option} {url!r}: not a database URL ({exc})") from None
+    if u.get_backend_name() == "sqlite" and u.database not in (None, "", ":memory:"):
+        folder = Path(u.database).parent
+        if not folder.is_dir():
+            raise InputError(f"{option} {url}: no such directory {folder}")
+    try:
+        return optuna.storages.RDBStorage(url, heartbeat_interval=HEARTBEAT_S, grace_period=GRACE_S)
+    except (sqlalchemy.exc.SQLAlchemyError, ImportError, ValueError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise InputError(f"{option} {url}: cannot open the storage ({first})") from None
+
+
+def fail_orphaned_trials(storage, study_name: str) -> int:
+    """Mark every RUNNING trial of the study failed: only for a storage no other process can be using
+    (the caller holds its lock), where a RUNNING trial is one whose process was killed. Returns how many."""
+    import optuna
+    from optuna.trial import TrialState
+
+    try:
+        study = optuna.load_study(study_name=study_name, storage=storage)
+    except KeyError:  # no such study yet
+        return 0
+    running = study.get_trials(deepcopy=False, states=(TrialState.RUNNING,))
+    for t in running:
+        storage.set_trial_state_values(t._trial_id, TrialState.FAIL)
+        log.warning("trial %d of %s was left running by a process that died: marked failed", t.number, study_name)
+    return len(running)
 
 
 def parse_starts(specs: list[str], ranges: dict[str, tuple[float, float]]) -> list[dict[str, float]]:
@@ -374,6 +427,7 @@ class SweepPlan:
     variants: dict[str, dict]
     results_path: Path
     jobs: list = dataclasses.field(default_factory=list)  # (scenario, grid points still to fuse, variants)
+    changed: list = dataclasses.field(default_factory=list)  # names whose rows are of an earlier scenario content
 
     @property
     def total(self) -> int:
@@ -396,10 +450,14 @@ def plan_sweep(scenarios: list, params: list[str], variants: list[str], out: Pat
         grid.update(parse_grid(params))
     plan = SweepPlan(scenarios, grid, parsed, Path(out) / "results.jsonl")
     done = ResultsLog(plan.results_path).done(row_key)
+    named = {k.split("|", 1)[0] for k in done}
     for sc in scenarios:
-        todo = [p for p in grid_points(grid) if row_key({"scenario": sc.name, "params": p}) not in done]
+        key = {"scenario": sc.name, "scenario_sha256": sc.content_hash()}
+        todo = [p for p in grid_points(grid) if row_key({**key, "params": p}) not in done]
         if todo:
             plan.jobs.append((sc, todo, parsed))
+            if sc.name in named and not any(k.startswith(f"{sc.name}|{key['scenario_sha256']}|") for k in done):
+                plan.changed.append(sc.name)
     return plan
 
 
@@ -421,9 +479,10 @@ def run_sweep(plan: SweepPlan, workers: int, scheduler: str | None = None,
                 on_row(row)
 
     def failed(job, err):
-        finished(job, [{"scenario": job[0].name, "seed": job[0].seed, "params": p, **err} for p in job[1]])
+        finished(job, [{"scenario": job[0].name, "seed": job[0].seed, "scenario_sha256": job[0].content_hash(),
+                        "params": p, **err} for p in job[1]])
 
     run_tasks(plan.jobs, sweep_task, workers=workers, on_rows=finished, on_failure=failed, scheduler=scheduler)
-    names = {sc.name for sc in plan.scenarios}
-    rows = [r for r in results.latest(row_key).values() if r.get("scenario") in names]
+    current = {(sc.name, sc.content_hash()) for sc in plan.scenarios}  # rows of edited scenarios are stale
+    rows = [r for r in results.latest(row_key).values() if (r.get("scenario"), r.get("scenario_sha256")) in current]
     return mean_ate_table(rows, plan.grid), sims

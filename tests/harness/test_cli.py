@@ -46,7 +46,7 @@ def test_maps_generate(tmp_path):
         (["maps", "generate", "spiral", "--out", "x.osm"], "spiral"),
         (["maps", "generate", "grid", "--out", "x.osm", "-p", "colz=3"], "colz"),
         (["maps", "generate", "grid", "--out", "x.osm", "-p", "cols=many"], "cols"),
-        (["maps", "generate", "city", "--out", "x.osm", "-p", "width_km=40"], "10 km"),
+        (["maps", "generate", "city", "--out", "x.osm", "-p", "width_km=40"], "width_km"),
     ],
 )
 def test_bad_input_exits_2(args, needle, tmp_path, monkeypatch):

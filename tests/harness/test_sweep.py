@@ -78,7 +78,7 @@ def test_parse_variants_faithful_is_the_papers_reading():
     assert with_params(FusionConfig(), v["defaults"]) == FusionConfig()
 
 
-@pytest.mark.parametrize("spec,needle", [("nope", "expected defaults or faithful"), ("x=missing.toml", "cannot read"),
+@pytest.mark.parametrize("spec,needle", [("nope", "expected defaults or faithful"), ("x=missing.toml", "missing.toml: no such"),
                                          ("x=BAD", "lane_width_m")])
 def test_sweep_bad_variant_exit_2(tmp_path, spec, needle):
     (tmp_path / "bad.toml").write_text("[mapfusion]\nlane_width_m = 0.1\n")
