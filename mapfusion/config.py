@@ -320,6 +320,17 @@ class FusionConfig:
         min=0.0,
         source="issue 16: by measurement on real VO, KITTI ground truth as odometry and a 60-run set (docs/method.md)",
     )
+    max_odometry_speed_mps: float = param(
+        70.0,
+        "An odometry step implying more than this speed (scaled once initialised), and more than 20× the "
+        "median of the last 50 steps', is a VO failure (a corrupt pose, a relocalisation to a wrong place): "
+        "counted (odometry_jumps), logged and bridged with the last plausible motion, never followed.",
+        unit="m/s",
+        min=1.0,
+        max=1000.0,
+        source="issue 19: 70 m/s = 252 km/h, beyond any road vehicle; an impossible jump of 10,000 km was fused as "
+        "motion",
+    )
     odometry_rot_sigma_deg_per_m: float = param(
         0.035,
         "Rotation σ of an odometry step per metre it moves, combined in quadrature with "

@@ -11,6 +11,7 @@ class Counters:
 
     frames: int = 0
     odometry_rejected: int = 0
+    odometry_jumps: int = 0  # steps implying an impossible speed: bridged, never followed (issue 19)
     gps_used: int = 0
     gps_rejected_gate: int = 0
     gps_rejected_invalid: int = 0  # non-finite, or latitude/longitude out of range

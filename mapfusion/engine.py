@@ -32,7 +32,8 @@ from .gps_gate import GpsGate, Verdict
 from .initialisation import Initialiser, solve_initial_batch
 from .roadmap import RoadMap
 from .smoother import Smoother
-from .track import Alignment, Track
+from .stream import OnFinal, Release
+from .track import Alignment, JumpGuard, Track
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +77,7 @@ class MapFusion:
     """
 
     def __init__(self, road: RoadMap, config: FusionConfig | None = None, *, gps_rate_hz: float = 1.0,
-                 odometry_rate_hz: float = 10.0) -> None:
+                 odometry_rate_hz: float = 10.0, on_final: OnFinal | None = None) -> None:
         self.road = road
         self.cfg = config or FusionConfig()
         self.counters = Counters()
@@ -89,6 +90,8 @@ class MapFusion:
         self.matched_way: list[int] = []  # OSM way the matcher chose at each frame (-1: none)
         self._association = MapAssociation(road, self.cfg, self.counters)
         self._gate = GpsGate(self.cfg)
+        self._jumps = JumpGuard(self.cfg.max_odometry_speed_mps)
+        self._release = Release(self.cfg, on_final)  # streaming: final frames handed out, then forgotten
         self._smoother: Smoother | None = None
         self._gps_wait: list[tuple[float, float, float, float | None, float]] = []
         self._since_update = 0
@@ -105,15 +108,12 @@ class MapFusion:
         """The odometry's scale (map metres per odometry unit), None before initialisation."""
         return None if self.alignment is None else self.alignment.scale
 
-    @property
-    def scale_sigma(self) -> float | None:
-        return None if self.alignment is None else self.alignment.scale_sigma
+    scale_sigma = property(lambda self: None if self.alignment is None else self.alignment.scale_sigma)
 
     @property
     def scale_windows(self) -> float | None:
         """The paper's median-of-windows scale at initialisation."""
-        w = self.initialiser.windows
-        return None if w is None else w.scale
+        return None if self.initialiser.windows is None else self.initialiser.windows.scale
 
     @property
     def scale_samples(self) -> int:
@@ -122,27 +122,27 @@ class MapFusion:
 
     def map_prior_times(self) -> list[float]:
         """Times of the frames that received a map prior."""
-        return [self.track.t[k] for k in self.map_prior_frames]
+        return [self.track.t[k] for k in self.map_prior_frames if k >= self.track.first]
 
     def add_odometry(self, t: float, relative_pose) -> None:
         """One odometry frame: the motion since the previous frame (see the class docstring)."""
-        t = float(t)
-        rel = _as_pose3(relative_pose)
+        t, rel = float(t), _as_pose3(relative_pose)
         if not (math.isfinite(t) and _finite_pose(rel)):
             self.counters.odometry_rejected += 1
             return
         track = self.track
         if track.t and t <= track.t[-1]:
             raise EngineError(f"odometry time {t} does not increase (previous {track.t[-1]})")
-        position = track.append(t, rel)
+        position = track.append(t, self._jumps.bridge(t, rel, self.scale, self.counters))
         self.counters.frames += 1
-        self.initialiser.scale_estimator.add_odometry(t, position)
         self.matched_way.append(-1)
         if not self.initialised:
+            self.initialiser.scale_estimator.add_odometry(t, position)  # read only until initialised
             self._try_initialise()
         else:
             self._add_frame(len(track) - 1)
         self._flush_gps()
+        self._release.step(self)
 
     def add_gps(self, t: float, lat: float, lon: float, alt: float | None = None, sigma_m: float | None = None) -> None:
         """One GPS fix (WGS84 degrees; ``sigma_m`` per axis, or the configured gps_sigma_m)."""
@@ -173,7 +173,7 @@ class MapFusion:
 
     def online_estimates(self) -> tuple[np.ndarray, list[gtsam.Pose3 | None]]:
         """Every frame's causal estimate as it was made (None before initialisation)."""
-        return np.asarray(self.track.t), list(self.track.online)
+        return np.array([t for _, t in self.track.t.held()]), [p for _, p in self.track.online.held()]
 
     def trajectory(self) -> dict[float, gtsam.Pose3]:
         """Smoothed poses of every frame so far, by time (flushes pending factors first)."""
@@ -181,7 +181,7 @@ class MapFusion:
             return {}
         self._update()
         out = self._sm.poses()
-        for k, p in enumerate(self.track.online):  # frames the smoother never held (a failed update)
+        for k, p in self.track.online.held():  # frames the smoother never held (a failed update)
             if k not in out and p is not None:
                 out[k] = p
         return {self.track.t[k]: pose for k, pose in sorted(out.items()) if pose is not None}
@@ -192,6 +192,7 @@ class MapFusion:
             self.counters.gps_rejected_time += len(self._gps_wait)
             self._gps_wait = []
             self._update()
+        self._release.finish(self)
 
     @property
     def _sm(self) -> Smoother:

@@ -81,21 +81,77 @@ def write_tum(path: str | Path, t_s: np.ndarray, xyz_m: np.ndarray, q_xyzw: np.n
     q_xyzw = np.asarray(q_xyzw, dtype=float).reshape(-1, 4)
     if not (len(t_s) == len(xyz_m) == len(q_xyzw)):
         raise ValueError("write_tum: t, xyz and q must have the same length")
-    lines = [f"# {ln}" for ln in header.splitlines()] + ["# t tx ty tz qx qy qz qw"]
-    for t, (x, y, z), (qx, qy, qz, qw) in zip(t_s, xyz_m, q_xyzw):
-        lines.append(f"{t:.6f} {x:.4f} {y:.4f} {z:.4f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}")
+    lines = _tum_header(header) + _tum_lines(t_s, xyz_m, q_xyzw)
     p.write_text("\n".join(lines) + "\n")
     return p
 
 
+def _tum_header(header: str) -> list[str]:
+    return [f"# {ln}" for ln in header.splitlines()] + ["# t tx ty tz qx qy qz qw"]
+
+
+def _tum_lines(t_s, xyz_m, q_xyzw) -> list[str]:
+    return [f"{t:.6f} {x:.4f} {y:.4f} {z:.4f} {qx:.9f} {qy:.9f} {qz:.9f} {qw:.9f}"
+            for t, (x, y, z), (qx, qy, qz, qw) in zip(t_s, xyz_m, q_xyzw)]
+
+
+class TumWriter:
+    """A TUM trajectory written as it is produced (the lines :func:`write_tum` writes), into a
+    temporary file renamed to ``path`` by :meth:`commit`; :meth:`discard` leaves nothing."""
+
+    def __init__(self, path: str | Path, header: str = "") -> None:
+        self.path = Path(path)
+        self._tmp = self.path.with_name(f".{self.path.name}.partial")
+        self._f = open(self._tmp, "w")
+        self._f.write("\n".join(_tum_header(header)) + "\n")
+        self.count = 0
+
+    def write(self, t_s, xyz_m, q_xyzw) -> None:
+        lines = _tum_lines(np.asarray(t_s, dtype=float), np.asarray(xyz_m, dtype=float).reshape(-1, 3),
+                           np.asarray(q_xyzw, dtype=float).reshape(-1, 4))
+        if lines:
+            self._f.write("\n".join(lines) + "\n")
+            self.count += len(lines)
+
+    def commit(self) -> Path:
+        self._f.close()
+        self._tmp.replace(self.path)
+        return self.path
+
+    def discard(self) -> None:
+        self._f.close()
+        self._tmp.unlink(missing_ok=True)
+
+
+def _text_lines(path: str | Path, what: str):
+    """A text file's lines, streamed and strictly UTF-8: (line number, line); a missing file, a
+    directory, a binary or non-UTF-8 file raises :class:`FormatError` naming it (and the line)."""
+    p = Path(path)
+    if not p.exists():
+        raise FormatError(f"{p}: no such file")
+    if p.is_dir():
+        raise FormatError(f"{p}: is a directory, not a {what}")
+    lineno = 0
+    try:
+        with open(p, encoding="utf-8", errors="strict") as f:
+            for lineno, line in enumerate(f, start=1):
+                if "\0" in line:
+                    raise FormatError(f"{p}:{lineno}: a binary file, not a {what}")
+                yield lineno, line
+    except UnicodeDecodeError:
+        raise FormatError(f"{p}:{lineno + 1}: not UTF-8 text, not a {what}") from None
+    except OSError as exc:
+        raise FormatError(f"{p}: cannot read ({exc.strerror})") from None
+
+
 def numeric_rows(path: str | Path, columns: int | None, what: str, increasing: bool = True, comma_ok: bool = False):
-    """Rows of whitespace-separated numbers from a text file, with ``#`` comments and blank lines
-    skipped: ``(line number, values)``. A row with other than ``columns`` numbers (when given),
-    a non-number, NaN or infinity, or (``increasing``) a first value not above the previous one
-    raises :class:`FormatError` naming the file and line; ``what`` describes a row."""
+    """Rows of whitespace-separated numbers from a text file (streamed), with ``#`` comments and
+    blank lines skipped: ``(line number, values)``. A row with other than ``columns`` numbers (when
+    given), a non-number, NaN or infinity, or (``increasing``) a first value not above the previous
+    one raises :class:`FormatError` naming the file and line; ``what`` describes a row."""
     p = Path(path)
     last = -math.inf
-    for lineno, line in enumerate(read_text(p).splitlines(), start=1):
+    for lineno, line in _text_lines(p, "text file of numbers"):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
@@ -115,40 +171,54 @@ def numeric_rows(path: str | Path, columns: int | None, what: str, increasing: b
         yield lineno, vals
 
 
-def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Read a TUM trajectory: ``(t (N,), xyz (N, 3), q_xyzw (N, 4))``.
-
-    A line with other than 8 numbers, a non-finite value or a time not after the previous one
-    raises :class:`FormatError` naming the file and the line.
-    """
-    rows = []
+def tum_rows(path: str | Path):
+    """The checked rows of a TUM trajectory, streamed: ``t tx ty tz qx qy qz qw`` lists."""
     for lineno, v in numeric_rows(path, 8, "t tx ty tz qx qy qz qw", comma_ok=True):
         if max(abs(c) for c in v[1:4]) > MAX_COORDINATE_M:
             raise FormatError(f"{path}:{lineno}: a coordinate beyond {MAX_COORDINATE_M:g} m")
         if not 0.9 <= math.sqrt(sum(c * c for c in v[4:8])) <= 1.1:
             raise FormatError(f"{path}:{lineno}: the quaternion qx qy qz qw is not of unit length")
-        rows.append(v)
-    if not rows:
+        yield v
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Read a TUM trajectory: ``(t (N,), xyz (N, 3), q_xyzw (N, 4))``.
+
+    A line with other than 8 numbers, a non-finite value, a time not after the previous one, a
+    coordinate beyond 10⁷ m or a quaternion not of unit length raises :class:`FormatError` naming
+    the file and the line.
+    """
+    a = np.array(list(tum_rows(path)), dtype=float).reshape(-1, 8)
+    if not len(a):
         raise FormatError(f"{path}: no poses in the file")
-    a = np.asarray(rows)
     return a[:, 0], a[:, 1:4], a[:, 4:8]
 
 
-def read_kitti_poses(path: str | Path) -> np.ndarray:
-    """KITTI odometry poses: 12 numbers a line (the top 3×4 of T_world_cam), → (N, 4, 4)."""
-    rows = []
+def kitti_rows(path: str | Path):
+    """The checked rows of a KITTI poses file, streamed: 12 numbers, the top 3×4 of T_world_cam."""
     for lineno, v in numeric_rows(path, 12, "a KITTI pose: the top 3×4 of T_world_cam", increasing=False):
         if max(abs(v[3]), abs(v[7]), abs(v[11])) > MAX_COORDINATE_M:
             raise FormatError(f"{path}:{lineno}: a coordinate beyond {MAX_COORDINATE_M:g} m")
         r = np.asarray(v).reshape(3, 4)[:, :3]
         if not np.allclose(r @ r.T, np.eye(3), atol=0.05):
             raise FormatError(f"{path}:{lineno}: the 3×3 part is not a rotation")
-        rows.append(v)
+        yield v
+
+
+def kitti_to_matrices(rows) -> np.ndarray:
+    """KITTI rows (N, 12) → (N, 4, 4) poses."""
+    a = np.asarray(rows, dtype=float).reshape(-1, 12)
+    m = np.tile(np.eye(4), (len(a), 1, 1))
+    m[:, :3, :4] = a.reshape(-1, 3, 4)
+    return m
+
+
+def read_kitti_poses(path: str | Path) -> np.ndarray:
+    """KITTI odometry poses: 12 numbers a line (the top 3×4 of T_world_cam), → (N, 4, 4)."""
+    rows = list(kitti_rows(path))
     if not rows:
         raise FormatError(f"{path}: no poses in the file")
-    m = np.tile(np.eye(4), (len(rows), 1, 1))
-    m[:, :3, :4] = np.asarray(rows).reshape(-1, 3, 4)
-    return m
+    return kitti_to_matrices(rows)
 
 
 def read_times(path: str | Path) -> np.ndarray:
@@ -220,37 +290,35 @@ def write_gps_csv(path: str | Path, t_s, lat_deg, lon_deg, alt_m=None, sigma_m=N
 
 
 def _csv_rows(path: Path, header: tuple[str, ...], optional: set[str]):
-    import io
-
-    with io.StringIO(read_text(path, "CSV file"), newline="") as f:
-        reader = csv.reader(f)
-        try:
-            head = [h.strip() for h in next(reader)]
-        except StopIteration:
-            raise FormatError(f"{path}: empty file") from None
-        if tuple(head[: len(header)]) != header:
-            raise FormatError(f"{path}:1: header must start with {','.join(header)}, got {','.join(head)}")
-        last_t = -math.inf
-        for lineno, row in enumerate(reader, start=2):
-            if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
+    # streamed: an IMU file of a long drive is never held whole
+    reader = csv.reader(line for _, line in _text_lines(path, "CSV file"))
+    try:
+        head = [h.strip() for h in next(reader)]
+    except StopIteration:
+        raise FormatError(f"{path}: empty file") from None
+    if tuple(head[: len(header)]) != header:
+        raise FormatError(f"{path}:1: header must start with {','.join(header)}, got {','.join(head)}")
+    last_t = -math.inf
+    for lineno, row in enumerate(reader, start=2):
+        if not row or all(not c.strip() for c in row) or row[0].lstrip().startswith("#"):
+            continue
+        if len(row) < len(header):
+            raise FormatError(f"{path}:{lineno}: expected {len(header)} columns, got {len(row)}")
+        vals = []
+        for name, cell in zip(header, row):
+            cell = cell.strip()
+            if cell == "" and name in optional:
+                vals.append(math.nan)
                 continue
-            if len(row) < len(header):
-                raise FormatError(f"{path}:{lineno}: expected {len(header)} columns, got {len(row)}")
-            vals = []
-            for name, cell in zip(header, row):
-                cell = cell.strip()
-                if cell == "" and name in optional:
-                    vals.append(math.nan)
-                    continue
-                try:
-                    v = float(cell)
-                except ValueError:
-                    raise FormatError(f"{path}:{lineno}: {name} is not a number: {cell!r}") from None
-                vals.append(v)
-            if vals[0] <= last_t:
-                raise FormatError(f"{path}:{lineno}: time {vals[0]} does not increase (previous {last_t})")
-            last_t = vals[0]
-            yield lineno, vals
+            try:
+                v = float(cell)
+            except ValueError:
+                raise FormatError(f"{path}:{lineno}: {name} is not a number: {cell!r}") from None
+            vals.append(v)
+        if vals[0] <= last_t:
+            raise FormatError(f"{path}:{lineno}: time {vals[0]} does not increase (previous {last_t})")
+        last_t = vals[0]
+        yield lineno, vals
 
 
 def read_gps_csv(path: str | Path) -> GpsFixes:
@@ -280,6 +348,12 @@ def write_imu_csv(path: str | Path, t_s, accel_mps2, gyro_radps) -> Path:
         for t, a, g in zip(t_s, accel_mps2, gyro_radps):
             w.writerow([f"{t:.4f}"] + [f"{v:.6f}" for v in a] + [f"{v:.7f}" for v in g])
     return p
+
+
+def check_imu_csv(path: str | Path) -> int:
+    """Read an IMU CSV through (streamed, nothing kept), raising :class:`FormatError` as
+    :func:`read_imu_csv` does; returns the number of samples."""
+    return sum(1 for _ in _csv_rows(Path(path), IMU_HEADER, set()))
 
 
 def read_imu_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

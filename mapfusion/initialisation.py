@@ -234,7 +234,7 @@ class Initialiser:
         (outliers beyond the fit's bound of a first fit dropped), or None when there are too few
         fixes, too little motion, or the fit disagrees with the windows' median."""
         cfg = self.cfg
-        lo, hi = max(since_t, track.t[0] - 0.5), track.t[-1] + 0.5
+        lo, hi = max(since_t, track.t[track.first] - 0.5), track.t[-1] + 0.5
         g = np.array([f for f in self.fixes if lo <= f[0] <= hi]).reshape(-1, 4)
         if len(g) < cfg.scale_fit_min_fixes:
             return None

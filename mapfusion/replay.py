@@ -14,7 +14,8 @@ import numpy as np
 from .config import FusionConfig, from_mapping
 from .engine import MapFusion
 from .errors import ConfigError
-from .formats import FormatError, GpsFixes, read_kitti_poses, read_times, read_toml, read_tum, tum_to_matrices
+from .formats import (FormatError, GpsFixes, kitti_rows, kitti_to_matrices, read_times, read_toml, tum_rows,
+                      tum_to_matrices)
 from .roadmap import RoadMap
 
 
@@ -53,19 +54,57 @@ def body_to_camera(poses: np.ndarray) -> np.ndarray:
 def read_odometry(path: str | Path, fmt: OdometryFormat = OdometryFormat.tum, times: str | Path | None = None,
                   frame: OdometryFrame = OdometryFrame.body) -> tuple[np.ndarray, np.ndarray]:
     """Odometry as (t (N,), absolute poses (N, 4, 4) in the body convention)."""
+    parts = list(read_odometry_chunks(path, fmt, times, frame, chunk=1 << 62))
+    if not parts:
+        raise FormatError(f"{path}: no poses in the file")
+    return parts[0]
+
+
+def odometry_times(path: str | Path, fmt: OdometryFormat = OdometryFormat.tum,
+                   times: str | Path | None = None) -> np.ndarray:
+    """Every frame's time, the whole file read through and checked (nothing else kept): the first
+    pass of a streamed fusion, which refuses a bad file before any work."""
     if OdometryFormat(fmt) is OdometryFormat.tum:
-        t, xyz, q = read_tum(path)
-        poses = tum_to_matrices(xyz, q)
+        t = np.fromiter((row[0] for row in tum_rows(path)), dtype=float)
     else:
         if times is None:
             raise FormatError("KITTI odometry needs --times (one timestamp a line)")
-        poses = read_kitti_poses(path)
         t = read_times(times)
-        if len(t) != len(poses):
-            raise FormatError(f"{path}: {len(poses)} poses but {times} has {len(t)} times")
-    if OdometryFrame(frame) is OdometryFrame.camera:
-        poses = camera_to_body(poses)
-    return t, poses
+        n = sum(1 for _ in kitti_rows(path))
+        if len(t) != n:
+            raise FormatError(f"{path}: {n} poses but {times} has {len(t)} times")
+    if not len(t):
+        raise FormatError(f"{path}: no poses in the file")
+    return t
+
+
+def read_odometry_chunks(path: str | Path, fmt: OdometryFormat = OdometryFormat.tum, times: str | Path | None = None,
+                         frame: OdometryFrame = OdometryFrame.body, chunk: int = 2048):
+    """The odometry as (t, absolute poses (n, 4, 4), body convention) chunks of ``chunk`` frames,
+    streamed (a long drive is never held whole; the numbers are those of :func:`read_odometry`)."""
+    import itertools
+
+    if OdometryFormat(fmt) is OdometryFormat.tum:
+        rows = tum_rows(path)
+        while block := list(itertools.islice(rows, chunk)):
+            a = np.asarray(block, dtype=float)
+            yield a[:, 0], _to_body(tum_to_matrices(a[:, 1:4], a[:, 4:8]), frame)
+    else:
+        if times is None:
+            raise FormatError("KITTI odometry needs --times (one timestamp a line)")
+        t_all = read_times(times)
+        rows, start = kitti_rows(path), 0
+        while block := list(itertools.islice(rows, chunk)):
+            if start + len(block) > len(t_all):
+                raise FormatError(f"{path}: more poses than {times} has times ({len(t_all)})")
+            yield t_all[start:start + len(block)], _to_body(kitti_to_matrices(block), frame)
+            start += len(block)
+        if start != len(t_all):
+            raise FormatError(f"{path}: {start} poses but {times} has {len(t_all)} times")
+
+
+def _to_body(poses: np.ndarray, frame: OdometryFrame) -> np.ndarray:
+    return camera_to_body(poses) if OdometryFrame(frame) is OdometryFrame.camera else poses
 
 
 def load_fusion_config(path: str | Path | None, **overrides) -> FusionConfig:
@@ -96,28 +135,62 @@ def fuse(road: RoadMap, t_odo: np.ndarray, poses: np.ndarray, gps: GpsFixes | No
     n = len(t_odo)
     if n < 2:
         raise FormatError("odometry: need at least two frames")
-    period = float(np.median(np.diff(t_odo)))
+    eng = _engine(road, t_odo, gps, cfg)
+    feed(eng, [(np.asarray(t_odo), np.asarray(poses))], gps, n, progress)
+    t_s, online = eng.online_estimates()
+    return FusionResult(t_s, online, eng.trajectory(), eng)
+
+
+def _engine(road: RoadMap, t_odo: np.ndarray, gps: GpsFixes | None, cfg: FusionConfig, on_final=None) -> MapFusion:
+    """The engine for a recorded drive: its odometry and GPS rates from the median periods."""
     gps_rate = 1.0
     if gps is not None and len(gps) >= 2:
         gps_rate = 1.0 / float(np.median(np.diff(gps.t_s)))
-    eng = MapFusion(road, cfg, gps_rate_hz=gps_rate, odometry_rate_hz=1.0 / period)
-    gi = 0
+    period = float(np.median(np.diff(t_odo)))
+    return MapFusion(road, cfg, gps_rate_hz=gps_rate, odometry_rate_hz=1.0 / period, on_final=on_final)
+
+
+def fuse_streaming(road: RoadMap, path: str | Path, fmt: OdometryFormat, times: str | Path | None,
+                   frame: OdometryFrame, gps: GpsFixes | None, cfg: FusionConfig, on_final, progress=None) -> MapFusion:
+    """The engine over an odometry file of any length, in flat memory: the file is read through
+    once to check it (and for its rate), then fed a chunk at a time; each frame goes to
+    ``on_final(t, online, smoothed)`` once final (see :mod:`mapfusion.stream`). Returns the engine."""
+    t_all = odometry_times(path, fmt, times)
+    if len(t_all) < 2:
+        raise FormatError("odometry: need at least two frames")
+    eng = _engine(road, t_all, gps, cfg, on_final)
+    n = len(t_all)
+    del t_all
+    feed(eng, read_odometry_chunks(path, fmt, times, frame), gps, n, progress)
+    return eng
+
+
+def feed(eng: MapFusion, chunks, gps: GpsFixes | None, n: int, progress=None) -> None:
+    """Feed (t, absolute poses) chunks and the fixes to the engine in time order, then finish it."""
+    gi, k = 0, 0
     ng = 0 if gps is None else len(gps)
-    inv = np.linalg.inv(poses[:-1])
-    for k in range(n):
-        t = float(t_odo[k])
-        while gps is not None and gi < ng and gps.t_s[gi] <= t + 1e-9:
-            alt = gps.alt_m[gi]
-            eng.add_gps(float(gps.t_s[gi]), float(gps.lat_deg[gi]), float(gps.lon_deg[gi]),
-                        None if not math.isfinite(alt) else float(alt), float(gps.sigma_m[gi]))
-            gi += 1
-        rel = np.eye(4) if k == 0 else inv[k - 1] @ poses[k]
-        eng.add_odometry(t, rel)
-        if progress is not None and k % 500 == 0:
-            progress(k, n)
+    prev = np.eye(4)
+    for t_chunk, poses in chunks:
+        inv = np.linalg.inv(poses[:-1])
+        for j in range(len(t_chunk)):
+            t = float(t_chunk[j])
+            while gps is not None and gi < ng and gps.t_s[gi] <= t + 1e-9:
+                alt = gps.alt_m[gi]
+                eng.add_gps(float(gps.t_s[gi]), float(gps.lat_deg[gi]), float(gps.lon_deg[gi]),
+                            None if not math.isfinite(alt) else float(alt), float(gps.sigma_m[gi]))
+                gi += 1
+            if k == 0:
+                rel = np.eye(4)
+            elif j == 0:
+                rel = np.linalg.inv(prev[None])[0] @ poses[0]
+            else:
+                rel = inv[j - 1] @ poses[j]
+            eng.add_odometry(t, rel)
+            if progress is not None and k % 500 == 0:
+                progress(k, n)
+            k += 1
+        prev = poses[-1]
     eng.finish()
-    t_s, online = eng.online_estimates()
-    return FusionResult(t_s, online, eng.trajectory(), eng)
 
 
 def poses_to_arrays(poses: list) -> tuple[np.ndarray, np.ndarray]:

@@ -188,7 +188,8 @@ class Smoother:
             if k <= anchor_k:
                 continue
             g.add(self._between_for(k))
-            v.insert(X(k), online[k] if online[k] is not None else anchor)
+            guess = online[k]
+            v.insert(X(k), guess if guess is not None else anchor)
             stamps[X(k)] = self.track.t[k]
         try:
             self.backend.update(g, v, stamps)

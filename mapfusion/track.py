@@ -9,13 +9,20 @@ initialisation) takes a raw pose into the map frame.
 from __future__ import annotations
 
 import bisect
+import logging
 import math
+from collections import deque
+from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import gtsam
 import numpy as np
 
 from .config import StateModel
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 def level(p: gtsam.Pose3) -> gtsam.Pose3:
@@ -45,16 +52,61 @@ class Alignment:
     trans_m: np.ndarray
 
 
+class History(Generic[T]):
+    """A list indexed by absolute frame number whose oldest items can be dropped, so a drive of any
+    length holds a bounded history. Negative indices count from the end, as in a list; a dropped
+    frame raises IndexError (never a wrong frame)."""
+
+    def __init__(self) -> None:
+        self._items: list[T] = []
+        self.first = 0  # the oldest frame still held
+
+    def __len__(self) -> int:
+        return self.first + len(self._items)
+
+    def _at(self, k: int) -> int:
+        if k < 0:
+            k += len(self)
+        if not self.first <= k < len(self):
+            raise IndexError(f"frame {k} is not held (frames {self.first}..{len(self) - 1})")
+        return k - self.first
+
+    def __getitem__(self, k: int) -> T:
+        return self._items[self._at(k)]
+
+    def __setitem__(self, k: int, value: T) -> None:
+        self._items[self._at(k)] = value
+
+    def __iter__(self) -> Iterator[T]:
+        if self.first:
+            raise IndexError(f"frames before {self.first} were dropped: iterate over held() instead")
+        return iter(self._items)
+
+    def held(self) -> Iterator[tuple[int, T]]:
+        """(frame, item) of every frame still held."""
+        return enumerate(self._items, start=self.first)
+
+    def append(self, value: T) -> None:
+        self._items.append(value)
+
+    def drop_before(self, k: int) -> None:
+        """Forget frames before k."""
+        n = min(k, len(self)) - self.first
+        if n > 0:
+            del self._items[:n]
+            self.first += n
+
+
 class Track:
     """Odometry frames in time order, and their causal estimates (None before initialisation)."""
 
     def __init__(self, state: StateModel, nominal_period_s: float) -> None:
         self.state = state
         self.nominal_period_s = nominal_period_s
-        self.t: list[float] = []
-        self.raw: list[gtsam.Pose3] = []  # raw absolute odometry poses (levelled once level is set)
-        self.rel: list[gtsam.Pose3] = []  # raw relative motion into each frame (identity for the first)
-        self.online: list[gtsam.Pose3 | None] = []
+        self.t: History[float] = History()
+        self.raw: History[gtsam.Pose3] = History()  # raw absolute odometry poses (levelled once level is set)
+        self.rel: History[gtsam.Pose3] = History()  # raw relative motion into each frame (identity for the first)
+        self.online: History[gtsam.Pose3 | None] = History()
         self.level_rot: gtsam.Pose3 | None = None
         self._odo_abs = gtsam.Pose3()
 
@@ -71,10 +123,20 @@ class Track:
         self.online.append(None)
         return self._odo_abs.translation()
 
+    @property
+    def first(self) -> int:
+        """The oldest frame still held (0 unless :meth:`drop_before` was called)."""
+        return self.t.first
+
+    def drop_before(self, k: int) -> None:
+        """Forget the frames before k (their times, poses and estimates)."""
+        for h in (self.t, self.raw, self.rel, self.online):
+            h.drop_before(k)
+
     def frame_at(self, t: float) -> int:
-        """Index of the frame nearest in time (bisect: the frame list only grows)."""
-        i = min(bisect.bisect_left(self.t, t), len(self.t) - 1)
-        if i > 0 and abs(self.t[i - 1] - t) <= abs(self.t[i] - t):
+        """Index of the nearest held frame in time (bisect: the frame list only grows)."""
+        i = min(bisect.bisect_left(self.t, t, lo=self.first), len(self.t) - 1)
+        if i > self.first and abs(self.t[i - 1] - t) <= abs(self.t[i] - t):
             i -= 1
         return i
 
@@ -106,7 +168,8 @@ class Track:
             return 0.0
         lvl = gtsam.Pose3(gtsam.Rot3.Rodrigues(axis / np.linalg.norm(axis) * angle), gtsam.Point3(0, 0, 0))
         self.level_rot = lvl
-        self.raw = [lvl.compose(p) for p in self.raw]
+        for k, p in list(self.raw.held()):
+            self.raw[k] = lvl.compose(p)
         return angle
 
     def to_map(self, raw: gtsam.Pose3, a: Alignment) -> gtsam.Pose3:
@@ -126,3 +189,46 @@ class Track:
             rel = self.rel[k]
         t = rel.translation() * scale
         return gtsam.Pose3(rel.rotation(), gtsam.Point3(*t))
+
+
+class JumpGuard:
+    """Odometry steps implying an impossible speed (a VO failure: a corrupt pose, a relocalisation to
+    a wrong place) are flagged and bridged with the last plausible motion (constant velocity).
+
+    A step is impossible when its speed exceeds ``max_speed_mps`` (scaled by the odometry's scale
+    once known) and 20 times the median of the last 50 plausible steps (so a monocular odometry of
+    unknown scale is not flagged for its units alone).
+    """
+
+    RATIO, HISTORY, MIN_HISTORY, MIN_TYPICAL_MPS = 20.0, 50, 10, 0.5
+
+    def __init__(self, max_speed_mps: float) -> None:
+        self.max_speed_mps = max_speed_mps
+        self._speeds: deque[float] = deque(maxlen=self.HISTORY)
+        self._last: tuple[float, gtsam.Pose3] | None = None  # (dt, rel) of the last plausible step
+        self._t: float | None = None
+
+    def check(self, t: float, rel: gtsam.Pose3, scale: float | None) -> tuple[gtsam.Pose3, bool]:
+        """The step to use into the frame at ``t``, and whether ``rel`` was an impossible jump."""
+        if self._t is None:
+            self._t = t
+            return rel, False
+        dt, self._t = max(t - self._t, 1e-3), t
+        speed = float(np.linalg.norm(rel.translation())) * (scale or 1.0) / dt
+        seen = len(self._speeds) >= self.MIN_HISTORY  # a step is judged against the odometry's own speeds
+        typical = float(np.median(self._speeds)) if seen else math.inf
+        impossible = speed > self.max_speed_mps and speed > self.RATIO * max(typical, self.MIN_TYPICAL_MPS)
+        if impossible and self._last is not None:
+            last_dt, last = self._last
+            return gtsam.Pose3(last.rotation(), gtsam.Point3(*(last.translation() * (dt / last_dt)))), True
+        self._speeds.append(speed)
+        self._last = (dt, rel)
+        return rel, False
+
+    def bridge(self, t: float, rel: gtsam.Pose3, scale: float | None, counters) -> gtsam.Pose3:
+        """:meth:`check`, counting (``counters.odometry_jumps``) and logging a bridged jump."""
+        step, jump = self.check(t, rel, scale)
+        if jump:
+            counters.odometry_jumps += 1
+            log.warning("the odometry step into t = %.3f s implies an impossible speed: bridged", t)
+        return step

@@ -401,7 +401,7 @@ def fuse(
     """Run the engine on recorded odometry and GPS with an OSM map; write the online (causal) estimate."""
     from mapfusion.replay import OdometryFormat, OdometryFrame, load_fusion_config
 
-    from .pipeline import RecordedInputs, fuse_recorded, write_estimates
+    from .pipeline import RecordedInputs, fuse_recorded_to_files
 
     given = {"--map": map_path, "--odometry": odometry, "--gps": gps, "--imu": imu, "--config": config, "--times": times}
     _check_output_file(out, "--out", given)
@@ -415,20 +415,19 @@ def fuse(
         cfg = load_fusion_config(config, **({"use_map": False} if no_map else {}))
         inputs = RecordedInputs(map_path, odometry, fmt, frame, times, gps, gps_until_s, imu)
         with _FrameBar() as bar:
-            res = fuse_recorded(inputs, cfg, progress=bar.update)
+            eng, n = fuse_recorded_to_files(inputs, cfg, out, smoothed, f" ({'no map' if no_map else 'with map'})",
+                                            progress=bar.update)
     except InputError as exc:
         _fail(str(exc))
-    eng = res.engine
     if not eng.initialised:
         _fail("the engine never initialised: it needs GPS fixes while the vehicle moves "
               f"(got {eng.counters.gps_before_init} fixes, {eng.scale_samples} scale samples)")
-    n = write_estimates(res, out, smoothed, f" ({'no map' if no_map else 'with map'})")
     c = eng.counters
     console.print(f"{n:,} poses → {out}; scale {eng.scale:.4f} ± {eng.scale_sigma or 0:.4f}, "
                   f"initialised at t = {eng.initialised_at:.1f} s; map priors {c.map_priors}, GPS used {c.gps_used} "
                   f"(rejected {c.gps_rejected}: {c.gps_rejected_gate} by the gate, {c.gps_rejected_time} for their time, "
                   f"{c.gps_rejected_invalid} invalid), odometry priors {c.odometry_priors}, "
-                  f"recoveries {c.recoveries}")
+                  f"recoveries {c.recoveries}, odometry jumps bridged {c.odometry_jumps}")
 
 
 class _FrameBar(_Bar):

@@ -139,7 +139,7 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
         metrics.update({"map_priors": c.map_priors, "gps_used": c.gps_used,
                         "gps_rejected": c.gps_rejected, "gps_rejected_gate": c.gps_rejected_gate,
                         "gps_rejected_time": c.gps_rejected_time, "gps_rejected_invalid": c.gps_rejected_invalid,
-                        "recoveries": c.recoveries, "gps_relocalisations": c.gps_relocalisations,
+                        "recoveries": c.recoveries, "odometry_jumps": c.odometry_jumps, "gps_relocalisations": c.gps_relocalisations,
                         "lost_events": c.lost_events, "lost_s": mf.engine.lost_s,
                         "scale": mf.engine.scale, "initialised_at_s": mf.engine.initialised_at})
     metrics["fusion_frames_per_s"] = fusion_fps
@@ -201,20 +201,90 @@ class RecordedInputs:
 
 def fuse_recorded(inputs: RecordedInputs, cfg: FusionConfig, progress=None) -> FusionResult:
     """The engine on recorded files (InputError / FormatError on bad input)."""
-    from mapfusion.formats import read_gps_csv, read_imu_csv
+    t_odo, poses = read_odometry(inputs.odometry, inputs.odometry_format, inputs.times, inputs.odometry_frame)
+    road, fixes = _recorded_map_and_gps(inputs, float(t_odo[0]))
+    return fuse(road, t_odo, poses, fixes, cfg, progress=progress)
+
+
+def _recorded_map_and_gps(inputs: RecordedInputs, t0_s: float):
+    """The road map and the fixes (up to --gps-until-s), checked against each other; the IMU file
+    read through and checked."""
+    from mapfusion.formats import check_imu_csv, read_gps_csv
     from mapfusion.maps import resolve_map
 
-    t_odo, poses = read_odometry(inputs.odometry, inputs.odometry_format, inputs.times, inputs.odometry_frame)
     fixes = read_gps_csv(inputs.gps) if inputs.gps is not None else None
     if fixes is not None and inputs.gps_until_s is not None:
-        fixes = fixes.until(t_odo[0] + inputs.gps_until_s)
+        fixes = fixes.until(t0_s + inputs.gps_until_s)
     if inputs.imu is not None:
-        read_imu_csv(inputs.imu)
+        check_imu_csv(inputs.imu)
     road = RoadMap.from_osm(resolve_map(inputs.map))
     if fixes is not None and len(fixes):
         road.check_covers(np.column_stack(road.projection.to_enu(fixes.lat_deg, fixes.lon_deg)),
                           f"{inputs.gps}: the GPS fixes on the map {inputs.map}")
-    return fuse(road, t_odo, poses, fixes, cfg, progress=progress)
+    return road, fixes
+
+
+#: Frames converted and written at a time by the streamed writers.
+WRITE_BATCH = 1000
+
+
+class _StreamedTum:
+    """Poses handed out by the engine, written to a TUM file in batches (numbers as write_tum's)."""
+
+    def __init__(self, path: Path, header: str) -> None:
+        from mapfusion.formats import TumWriter
+
+        self.writer = TumWriter(path, header)
+        self.t: list[float] = []
+        self.poses: list = []
+
+    def add(self, t: float, pose) -> None:
+        if pose is not None:
+            self.t.append(t)
+            self.poses.append(pose)
+            if len(self.t) >= WRITE_BATCH:
+                self.flush()
+
+    def flush(self) -> None:
+        if self.t:
+            xyz, q = poses_to_arrays(self.poses)
+            self.writer.write(self.t, xyz, q)
+            self.t, self.poses = [], []
+
+
+def fuse_recorded_to_files(inputs: RecordedInputs, cfg: FusionConfig, out: Path, smoothed: Path | None = None,
+                           label: str = "", progress=None):
+    """``mapfusion fuse``: the engine over recorded files of any length in flat memory, the online
+    estimate (and the smoothed trajectory) written as they become final. The files appear only when
+    the engine initialised. Returns (engine, poses written)."""
+    from mapfusion.replay import fuse_streaming, odometry_times
+
+    t0 = float(odometry_times(inputs.odometry, inputs.odometry_format, inputs.times)[0])
+    road, fixes = _recorded_map_and_gps(inputs, t0)
+    online = _StreamedTum(out, f"Map-Fusion online estimate{label}")
+    smooth = _StreamedTum(smoothed, "Map-Fusion smoothed trajectory") if smoothed is not None else None
+    writers = [w for w in (online, smooth) if w is not None]
+
+    def on_final(t: float, pose, smoothed_pose) -> None:
+        online.add(t, pose)
+        if smooth is not None:
+            smooth.add(t, smoothed_pose)
+
+    try:
+        eng = fuse_streaming(road, inputs.odometry, inputs.odometry_format, inputs.times, inputs.odometry_frame,
+                             fixes, cfg, on_final, progress)
+        for w in writers:
+            w.flush()
+    except BaseException:
+        for w in writers:
+            w.writer.discard()
+        raise
+    for w in writers:
+        if eng.initialised:
+            w.writer.commit()
+        else:
+            w.writer.discard()
+    return eng, online.writer.count
 
 
 def _write_online(res: FusionResult, path: Path, header: str) -> int:
