@@ -179,3 +179,16 @@ def test_a_killed_tune_trial_is_marked_failed_on_resume(tmp_path):
     assert TrialState.RUNNING not in after
     assert after.count(TrialState.FAIL) >= before.count(TrialState.RUNNING)
     assert after.count(TrialState.COMPLETE) == before.count(TrialState.COMPLETE) + 1
+
+
+def test_an_unreachable_scheduler_is_one_line_and_exit_2(tmp_path):
+    sc = tmp_path / "s.toml"
+    sc.write_text('name = "sched"\nmap = "grid"\nseed = 1\nduration_s = 30.0\n')
+    start = time.monotonic()
+    r = subprocess.run(_cli("run", str(sc), "--out", str(tmp_path / "o"), "--scheduler", "tcp://127.0.0.1:1"),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--scheduler" in lines[0] and "Traceback" not in r.stderr
+    assert time.monotonic() - start < 30  # refused well before any run could start
+    assert not list((tmp_path / "o").glob("*"))
