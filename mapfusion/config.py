@@ -88,10 +88,17 @@ def _convert(value: Any, tp: Any, key: str, where: str) -> Any:
     raise ConfigError(f"{where}: {key}: unsupported type {_type_name(tp)}")
 
 
+#: A number field with no documented maximum still has this one: no quantity of the engine or the
+#: simulation is meaningful beyond 10⁹ of its unit, and 1e308 would overflow the arithmetic after it.
+GENERIC_MAX = 1.0e9
+
+
 def _check_range(f: dataclasses.Field, value: Any, key: str, where: str) -> None:
     if not isinstance(value, (int, float)) or isinstance(value, bool):
         return
     lo, hi = f.metadata.get("min"), f.metadata.get("max")
+    if hi is None and isinstance(value, float):
+        hi = GENERIC_MAX
     unit = f.metadata.get("unit") or ""
     if lo is not None:
         if f.metadata.get("exclusive_min") and not value > lo:

@@ -30,17 +30,20 @@ def _table(cls: type) -> list[str]:
 def configuration_markdown() -> str:
     """The configuration reference page."""
     from sim.scenario import GpsConfig, ImuParams, RouteConfig, Scenario, TrafficConfig, WeatherConfig
+    from sim.sensors import OdometryParams
 
     out = ["# Configuration reference", "",
            "Generated from the code's own field documentation by `python -m mapfusion.harness.docs`; a test",
            "fails when this page is not current. Every field has a default; a TOML table sets any of them,",
-           "an unknown key or a value out of range is an error naming the key.", "",
+           "an unknown key or a value out of range is an error naming the key (a number with no stated",
+           "maximum is still at most 10⁹ of its unit: `mapfusion.config.GENERIC_MAX`).", "",
            "## `[mapfusion]`: the engine (`FusionConfig`)", "",
            "The `[mapfusion]` table of a scenario file, `mapfusion fuse --config FILE`, `mapfusion sweep --variant",
            "NAME=FILE` and `--param NAME=...`. `FusionConfig.faithful()` is the paper's section III read directly.", ""]
     out += _table(FusionConfig)
     for title, cls in (("Scenario (top level)", Scenario), ("`[traffic]`", TrafficConfig), ("`[route]`", RouteConfig),
-                       ("`[weather]`", WeatherConfig), ("`[gps]`", GpsConfig), ("`[imu]`", ImuParams)):
+                       ("`[weather]`", WeatherConfig), ("`[gps]`", GpsConfig), ("`[imu]`", ImuParams),
+                       ("`[odometry]`: the preset fields a scenario may replace", OdometryParams)):
         out += ["", f"## {title}", ""] + _table(cls)
     return "\n".join(out) + "\n"
 

@@ -13,6 +13,7 @@ import json
 import logging
 import math
 import traceback
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -378,7 +379,9 @@ def open_storage(url: str, option: str = "--storage"):
         if not folder.is_dir():
             raise InputError(f"{option} {url}: no such directory {folder}")
     try:
-        return optuna.storages.RDBStorage(url, heartbeat_interval=HEARTBEAT_S, grace_period=GRACE_S)
+        with warnings.catch_warnings():  # the heartbeat is "experimental" to Optuna: no warning line on stderr
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            return optuna.storages.RDBStorage(url, heartbeat_interval=HEARTBEAT_S, grace_period=GRACE_S)
     except (sqlalchemy.exc.SQLAlchemyError, ImportError, ValueError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise InputError(f"{option} {url}: cannot open the storage ({first})") from None

@@ -215,3 +215,20 @@ def test_the_map_never_bends_a_perfect_odometry(seq, tmp_path):
     if seq == "02":
         # the drive on which the estimate leaves the band of OSM's centre lines: the map is exercised
         assert priors > 0
+
+
+@needs_data
+@pytest.mark.parametrize("case,needle", [("kml", "does not fit the poses"), ("map", "off the map")])
+def test_a_mismatched_import_is_refused(case, needle, tmp_path, capsys):
+    """Issue 19: another sequence's track (a 93 m fit, a 250 m "lever arm") and a map of another
+    country (the truth 1,200 km off it) are refused with one line, nothing written."""
+    from mapfusion.harness.cli import main
+
+    d, other = Path(DATA) / "kitti" / "07", Path(DATA) / "kitti" / "00"
+    kml = other / "rtk_gps.kml" if case == "kml" else d / "rtk_gps.kml"
+    mp = "helsinki" if case == "map" else str(d / "map.osm")
+    code = main(["import", "kitti", "--poses", str(d / "poses.txt"), "--times", str(d / "times.txt"),
+                 "--gps", str(kml), "--map", mp, "--out", str(tmp_path / "r")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and needle in err[0], err
+    assert not (tmp_path / "r").exists()

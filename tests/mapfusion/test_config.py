@@ -5,6 +5,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytest
+
 from mapfusion.config import Backend, FusionConfig, PriorMode, RobustKernel, StateModel, describe
 
 PAGE = Path(__file__).parents[2] / "docs" / "configuration.md"
@@ -32,3 +34,22 @@ def test_faithful_is_the_papers_direct_reading():
     d = FusionConfig()
     for k in ("lane_width_m", "yaw_sigma_deg", "angle_weight_m_per_deg", "search_radius_m", "scale_samples"):
         assert getattr(f, k) == getattr(d, k)
+
+
+def test_no_number_field_takes_an_absurd_value():
+    """Issue 19: a value of 1e308 in any number field is refused at load (it crashed the run after
+    it); 1e9, the generic maximum, is still a value."""
+    import dataclasses
+    import typing
+
+    from mapfusion.config import GENERIC_MAX, FusionConfig, from_mapping
+    from mapfusion.errors import ConfigError
+
+    hints = typing.get_type_hints(FusionConfig)
+    floats = [f for f in dataclasses.fields(FusionConfig) if hints[f.name] is float]
+    assert floats
+    for f in floats:
+        with pytest.raises(ConfigError, match=f.name):
+            from_mapping(FusionConfig, {f.name: 1e308}, "t.toml")
+        if f.metadata.get("max") is None:
+            assert getattr(from_mapping(FusionConfig, {f.name: GENERIC_MAX}, "t.toml"), f.name) == GENERIC_MAX

@@ -9,6 +9,7 @@ script's entry point (``main``), so usage errors go through the same path as in 
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -270,6 +271,10 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
      {"p.txt": "1 0 0 0 0 1 0 0 0 0 1 0\n" * 3, "t.txt": "0\n0.1\n0.2\n",
       "g.kml": '<?xml version="1.0"?><!DOCTYPE kml [<!ENTITY x SYSTEM "file:///etc/passwd">]>'
                "<kml><LineString><coordinates>&x;</coordinates></LineString></kml>"}, ["g.kml"]),
+    ("import-kml-tag-soup", ["import", "kitti", "--poses", "{d}/p.txt", "--times", "{d}/t.txt", "--gps", "{d}/g.kml",
+                             "--map", "{in}/map.osm", "--out", "{d}/r"],
+     {"p.txt": "1 0 0 0 0 1 0 0 0 0 1 0\n" * 3, "t.txt": "0\n0.1\n0.2\n",
+      "g.kml": "<kml>" + "<LineString>" * 100_000 + "</kml>"}, ["g.kml"]),
     ("import-gps-at", ["import", "kitti", "--poses", "{d}/p.txt", "--times", "{d}/t.txt", "--gps", "{d}/g.kml",
                        "--map", "{in}/map.osm", "--out", "{d}/r", "--gps-at", "roof"],
      {"p.txt": "1 0 0 0 0 1 0 0 0 0 1 0\n" * 3, "t.txt": "0\n0.1\n0.2\n", "g.kml": "<kml/>"}, ["--gps-at"]),
@@ -300,8 +305,14 @@ def test_bad_input_is_one_line_and_exit_2(case_id, argv, files, needles, inputs,
     monkeypatch.chdir(d)
     before = _snapshot(d, inputs)
     args = [a.replace("{in}", str(inputs)).replace("{d}", str(d)) for a in argv]
-    code = main(args)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code = main(args)
     out, err = capsys.readouterr()
+    # a warning Python would print in a shell is a second line on stderr
+    shown = [w for w in caught if not issubclass(w.category, (DeprecationWarning, PendingDeprecationWarning,
+                                                               ImportWarning, ResourceWarning))]
+    assert not shown, [str(w.message) for w in shown]
     lines = err.strip().splitlines()
     assert code == 2, f"exit {code}; stdout: {out[-500:]}; stderr: {err[-2000:]}"
     assert len(lines) == 1, err
