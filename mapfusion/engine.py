@@ -109,6 +109,7 @@ class MapFusion:
         return None if self.alignment is None else self.alignment.scale
 
     scale_sigma = property(lambda self: None if self.alignment is None else self.alignment.scale_sigma)
+    position_sigma_m = property(lambda self: self._pos_sigma, doc="The latest marginal's largest positional σ (m).")
 
     @property
     def scale_windows(self) -> float | None:
@@ -167,9 +168,7 @@ class MapFusion:
 
     def estimate(self) -> gtsam.Pose3 | None:
         """The current causal estimate of the latest frame, or None before initialisation."""
-        if not self.initialised or not self.track.online:
-            return None
-        return self.track.online[-1]
+        return self.track.online[-1] if self.initialised and len(self.track.online) else None
 
     def online_estimates(self) -> tuple[np.ndarray, list[gtsam.Pose3 | None]]:
         """Every frame's causal estimate as it was made (None before initialisation)."""

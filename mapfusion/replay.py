@@ -130,18 +130,19 @@ class FusionResult:
 
 
 def fuse(road: RoadMap, t_odo: np.ndarray, poses: np.ndarray, gps: GpsFixes | None, cfg: FusionConfig,
-         progress=None) -> FusionResult:
-    """Feed odometry (absolute poses in its own frame) and GPS to the engine in time order."""
+         progress=None, on_frame=None) -> FusionResult:
+    """Feed odometry (absolute poses in its own frame) and GPS to the engine in time order;
+    ``on_frame(engine)`` after every frame."""
     n = len(t_odo)
     if n < 2:
         raise FormatError("odometry: need at least two frames")
-    eng = _engine(road, t_odo, gps, cfg)
-    feed(eng, [(np.asarray(t_odo), np.asarray(poses))], gps, n, progress)
+    eng = make_engine(road, t_odo, gps, cfg)
+    feed(eng, [(np.asarray(t_odo), np.asarray(poses))], gps, n, progress, on_frame)
     t_s, online = eng.online_estimates()
     return FusionResult(t_s, online, eng.trajectory(), eng)
 
 
-def _engine(road: RoadMap, t_odo: np.ndarray, gps: GpsFixes | None, cfg: FusionConfig, on_final=None) -> MapFusion:
+def make_engine(road: RoadMap, t_odo: np.ndarray, gps: GpsFixes | None, cfg: FusionConfig, on_final=None) -> MapFusion:
     """The engine for a recorded drive: its odometry and GPS rates from the median periods."""
     gps_rate = 1.0
     if gps is not None and len(gps) >= 2:
@@ -158,15 +159,16 @@ def fuse_streaming(road: RoadMap, path: str | Path, fmt: OdometryFormat, times: 
     t_all = odometry_times(path, fmt, times)
     if len(t_all) < 2:
         raise FormatError("odometry: need at least two frames")
-    eng = _engine(road, t_all, gps, cfg, on_final)
+    eng = make_engine(road, t_all, gps, cfg, on_final)
     n = len(t_all)
     del t_all
     feed(eng, read_odometry_chunks(path, fmt, times, frame), gps, n, progress)
     return eng
 
 
-def feed(eng: MapFusion, chunks, gps: GpsFixes | None, n: int, progress=None) -> None:
-    """Feed (t, absolute poses) chunks and the fixes to the engine in time order, then finish it."""
+def feed(eng: MapFusion, chunks, gps: GpsFixes | None, n: int, progress=None, on_frame=None) -> None:
+    """Feed (t, absolute poses) chunks and the fixes to the engine in time order, then finish it;
+    ``on_frame(engine)`` after each frame."""
     gi, k = 0, 0
     ng = 0 if gps is None else len(gps)
     prev = np.eye(4)
@@ -186,6 +188,8 @@ def feed(eng: MapFusion, chunks, gps: GpsFixes | None, n: int, progress=None) ->
             else:
                 rel = inv[j - 1] @ poses[j]
             eng.add_odometry(t, rel)
+            if on_frame is not None:
+                on_frame(eng)
             if progress is not None and k % 500 == 0:
                 progress(k, n)
             k += 1

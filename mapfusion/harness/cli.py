@@ -306,6 +306,37 @@ def import_kitti_cmd(
                   f"{g.lever_arm_cam_m[0]:+.2f}, {g.lever_arm_cam_m[1]:+.2f}, {g.lever_arm_cam_m[2]:+.2f} m")
 
 
+@import_app.command("bag")
+def import_bag_cmd(
+    bag: Annotated[Path, typer.Option("--bag", help="A ROS 1 (.bag) or ROS 2 (folder, sqlite3 or mcap) bag.")],
+    odometry_topic: Annotated[str, typer.Option("--odometry-topic", help="Its nav_msgs/Odometry topic.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
+    gps_topic: Annotated[Optional[str], typer.Option("--gps-topic", help="Its sensor_msgs/NavSatFix topic.")] = None,
+    imu_topic: Annotated[Optional[str], typer.Option("--imu-topic", help="Its sensor_msgs/Imu topic.")] = None,
+) -> None:
+    """A bag's odometry, GPS and IMU as the files fuse reads: odometry.tum (body convention),
+    gps.csv, imu.csv."""
+    from mapfusion.bags import read_bag
+    from mapfusion.formats import matrices_to_tum, write_gps_csv, write_imu_csv, write_tum
+
+    _check_output_dir(out, "--out", [bag])
+    try:
+        data = read_bag(bag, odometry_topic, gps_topic, imu_topic)
+    except InputError as exc:
+        _fail(str(exc))
+    out.mkdir(parents=True, exist_ok=True)
+    xyz, q = matrices_to_tum(data.poses)
+    write_tum(out / "odometry.tum", data.t_s, xyz, q, header=f"{odometry_topic} of {bag}")
+    if data.gps is not None:
+        g = data.gps
+        write_gps_csv(out / "gps.csv", g.t_s, g.lat_deg, g.lon_deg, g.alt_m, g.sigma_m)
+    if data.imu is not None:
+        write_imu_csv(out / "imu.csv", *data.imu)
+    console.print(f"{len(data.t_s):,} odometry poses, {0 if data.gps is None else len(data.gps)} GPS fixes "
+                  f"({data.gps_without_fix} without a fix skipped), {0 if data.imu is None else len(data.imu[0])} IMU "
+                  f"samples → {out}" + (" (optical child frame: read as camera axes)" if data.camera_frame else ""))
+
+
 @app.command()
 def simulate(
     scenario: Annotated[Path, typer.Argument(help="Scenario TOML file (DESIGN 'Scenario files').")],
@@ -383,8 +414,19 @@ class _SimBar(_Bar):
 @app.command()
 def fuse(
     map_path: Annotated[str, typer.Option("--map", help="OSM file or built-in map name.")],
-    odometry: Annotated[Path, typer.Option("--odometry", help="Odometry poses in its own frame (TUM, or KITTI with --times).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Estimate to write (TUM, map ENU frame).")],
+    odometry: Annotated[Optional[Path], typer.Option("--odometry", help="Odometry poses in its own frame (TUM, or "
+                                                     "KITTI with --times); or give --bag.")] = None,
+    bag: Annotated[Optional[Path], typer.Option("--bag", help="A ROS 1 (.bag) or ROS 2 (folder, sqlite3 or mcap) bag "
+                                                "instead of the files: with --odometry-topic, --gps-topic, --imu-topic.")] = None,
+    odometry_topic: Annotated[Optional[str], typer.Option("--odometry-topic", help="The bag's nav_msgs/Odometry topic.")] = None,
+    gps_topic: Annotated[Optional[str], typer.Option("--gps-topic", help="The bag's sensor_msgs/NavSatFix topic.")] = None,
+    imu_topic: Annotated[Optional[str], typer.Option("--imu-topic", help="The bag's sensor_msgs/Imu topic (read and "
+                                                     "checked, as --imu).")] = None,
+    out_bag: Annotated[Optional[Path], typer.Option("--out-bag", help="Also write the online estimate (nav_msgs/Odometry, "
+                                                    "frame map, child base_link) and the map priors (a MarkerArray) "
+                                                    "as a bag: NAME.bag is ROS 1, any other name a ROS 2 bag folder "
+                                                    "(MCAP storage).")] = None,
     gps: Annotated[Optional[Path], typer.Option("--gps", help="GPS CSV (t,lat,lon,alt,sigma_m).")] = None,
     imu: Annotated[Optional[Path], typer.Option("--imu", help="IMU CSV (t,ax,ay,az,gx,gy,gz); read and checked. "
                                                 "The engine does not use it: VIO users pass their VIO's poses.")] = None,
@@ -403,10 +445,27 @@ def fuse(
 
     from .pipeline import RecordedInputs, fuse_recorded_to_files
 
-    given = {"--map": map_path, "--odometry": odometry, "--gps": gps, "--imu": imu, "--config": config, "--times": times}
+    given = {"--map": map_path, "--odometry": odometry, "--gps": gps, "--imu": imu, "--config": config, "--times": times,
+             "--bag": bag}
     _check_output_file(out, "--out", given)
     if smoothed is not None:
         _check_output_file(smoothed, "--smoothed", {**given, "--out": out})
+    if (odometry is None) == (bag is None):
+        _fail("give --odometry FILE or --bag PATH (with --odometry-topic), not both or neither")
+    if out_bag is not None:
+        if out_bag.exists():
+            _fail(f"--out-bag {out_bag} exists: a bag is never overwritten")
+        _check_output_file(out_bag, "--out-bag", {**given, "--out": out})
+    if bag is not None:
+        if not odometry_topic:
+            _fail("--bag needs --odometry-topic (a nav_msgs/Odometry topic)")
+        if gps is not None or imu is not None or times is not None:
+            _fail("--bag takes its GPS and IMU from --gps-topic and --imu-topic, not --gps, --imu or --times")
+        _fuse_bag(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s, config, no_map, out, smoothed,
+                  out_bag)
+        return
+    if odometry_topic or gps_topic or imu_topic:
+        _fail("--odometry-topic, --gps-topic and --imu-topic go with --bag")
     try:
         try:
             fmt, frame = OdometryFormat(odometry_format), OdometryFrame(odometry_frame)
@@ -415,13 +474,63 @@ def fuse(
         cfg = load_fusion_config(config, **({"use_map": False} if no_map else {}))
         inputs = RecordedInputs(map_path, odometry, fmt, frame, times, gps, gps_until_s, imu)
         with _FrameBar() as bar:
-            eng, n = fuse_recorded_to_files(inputs, cfg, out, smoothed, f" ({'no map' if no_map else 'with map'})",
-                                            progress=bar.update)
+            if out_bag is None:  # streamed, in flat memory
+                eng, n = fuse_recorded_to_files(inputs, cfg, out, smoothed, f" ({'no map' if no_map else 'with map'})",
+                                                progress=bar.update)
+            else:  # the bag's covariances need every frame's σ: kept whole
+                eng, n = _fuse_files_with_bag(inputs, cfg, out, smoothed, out_bag, no_map, bar.update)
     except InputError as exc:
         _fail(str(exc))
     if not eng.initialised:
         _fail("the engine never initialised: it needs GPS fixes while the vehicle moves "
               f"(got {eng.counters.gps_before_init} fixes, {eng.scale_samples} scale samples)")
+    _fuse_summary(eng, n, out)
+
+
+def _fuse_files_with_bag(inputs, cfg, out: Path, smoothed, out_bag: Path, no_map: bool, progress):
+    from mapfusion.bags import BagKind
+
+    from .pipeline import fuse_recorded, write_estimate_bag, write_estimates
+
+    sigmas: list[float] = []
+    res = fuse_recorded(inputs, cfg, progress=progress, on_frame=lambda e: sigmas.append(e.position_sigma_m))
+    if res.engine.initialised:
+        n = write_estimates(res, out, smoothed, f" ({'no map' if no_map else 'with map'})")
+        write_estimate_bag(out_bag, BagKind.ros1 if out_bag.suffix == ".bag" else BagKind.mcap, res, sigmas)
+        return res.engine, n
+    return res.engine, 0
+
+
+def _fuse_bag(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s, config, no_map, out, smoothed,
+              out_bag) -> None:
+    """``fuse --bag``: the engine on a bag's topics."""
+    from mapfusion.bags import BagKind
+    from mapfusion.replay import load_fusion_config
+
+    from .pipeline import BagInputs, fuse_bag, write_estimate_bag, write_estimates
+
+    try:
+        cfg = load_fusion_config(config, **({"use_map": False} if no_map else {}))
+        with _FrameBar() as bar:
+            res, data, sigmas = fuse_bag(BagInputs(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s),
+                                         cfg, progress=bar.update)
+    except InputError as exc:
+        _fail(str(exc))
+    eng = res.engine
+    if not eng.initialised:
+        _fail("the engine never initialised: it needs GPS fixes while the vehicle moves "
+              f"(got {eng.counters.gps_before_init} fixes, {eng.scale_samples} scale samples)")
+    n = write_estimates(res, out, smoothed, f" ({'no map' if no_map else 'with map'})")
+    if out_bag is not None:
+        write_estimate_bag(out_bag, BagKind.ros1 if out_bag.suffix == ".bag" else BagKind.mcap, res, sigmas)
+    if data.camera_frame:
+        err_console.print(f"{odometry_topic}: an optical (camera) child frame: read as x right, y down, z forward")
+    if data.gps_without_fix:
+        err_console.print(f"{gps_topic}: {data.gps_without_fix} message(s) without a fix (status −1) skipped")
+    _fuse_summary(eng, n, out)
+
+
+def _fuse_summary(eng, n: int, out: Path) -> None:
     c = eng.counters
     console.print(f"{n:,} poses → {out}; scale {eng.scale:.4f} ± {eng.scale_sigma or 0:.4f}, "
                   f"initialised at t = {eng.initialised_at:.1f} s; map priors {c.map_priors}, GPS used {c.gps_used} "

@@ -199,11 +199,12 @@ class RecordedInputs:
     imu: Path | None = None  # read and checked; the engine does not use it yet
 
 
-def fuse_recorded(inputs: RecordedInputs, cfg: FusionConfig, progress=None) -> FusionResult:
-    """The engine on recorded files (InputError / FormatError on bad input)."""
+def fuse_recorded(inputs: RecordedInputs, cfg: FusionConfig, progress=None, on_frame=None) -> FusionResult:
+    """The engine on recorded files (InputError / FormatError on bad input); ``on_frame(engine)``
+    after every frame."""
     t_odo, poses = read_odometry(inputs.odometry, inputs.odometry_format, inputs.times, inputs.odometry_frame)
     road, fixes = _recorded_map_and_gps(inputs, float(t_odo[0]))
-    return fuse(road, t_odo, poses, fixes, cfg, progress=progress)
+    return fuse(road, t_odo, poses, fixes, cfg, progress=progress, on_frame=on_frame)
 
 
 def _recorded_map_and_gps(inputs: RecordedInputs, t0_s: float):
@@ -324,3 +325,52 @@ def evaluate_files(truth: Path, estimate: Path, max_dt_s: float = 0.02, delocali
     return {"frames": int(len(ia)), "ate_m": a, "delocalized": delocalized(a, delocalization_m),
             "online_rmse_m": on.rmse_m, "online_max_m": on.max_m, "online_lateral_rmse_m": on.lateral_rmse_m,
             "online_longitudinal_rmse_m": on.longitudinal_rmse_m, "rpe_per_100m_m": rpe}
+
+
+@dataclass(frozen=True)
+class BagInputs:
+    """What ``mapfusion fuse --bag`` reads: the map and the bag's topics."""
+
+    map: str
+    bag: Path
+    odometry_topic: str
+    gps_topic: str | None = None
+    imu_topic: str | None = None
+    gps_until_s: float | None = None
+
+
+def fuse_bag(inputs: BagInputs, cfg: FusionConfig, progress=None):
+    """The engine on a ROS bag's topics (InputError / BagError on bad input): (FusionResult, BagData,
+    each frame's positional σ from the engine's latest marginal, metres)."""
+    from mapfusion.bags import read_bag
+    from mapfusion.maps import resolve_map
+
+    data = read_bag(inputs.bag, inputs.odometry_topic, inputs.gps_topic, inputs.imu_topic)
+    fixes = data.gps
+    if fixes is not None and inputs.gps_until_s is not None:
+        fixes = fixes.until(float(data.t_s[0]) + inputs.gps_until_s)
+    road = RoadMap.from_osm(resolve_map(inputs.map))
+    if fixes is not None and len(fixes):
+        road.check_covers(np.column_stack(road.projection.to_enu(fixes.lat_deg, fixes.lon_deg)),
+                          f"{inputs.bag}: the GPS fixes of {inputs.gps_topic} on the map {inputs.map}")
+    sigmas: list[float] = []
+    res = fuse(road, data.t_s, data.poses, fixes, cfg, progress=progress,
+               on_frame=lambda e: sigmas.append(e.position_sigma_m))
+    return res, data, np.asarray(sigmas)
+
+
+def write_estimate_bag(path: Path, kind, res: FusionResult, sigmas_m: np.ndarray) -> int:
+    """The online estimate as nav_msgs/Odometry (frame map, child base_link; the position
+    covariance from the engine's marginal σ at each frame) and the map priors as a MarkerArray."""
+    from mapfusion.bags import write_bag
+
+    t, xyz, yaw, ok = _online_arrays(res)
+    poses = np.array([res.online[i].matrix() for i in ok]).reshape(-1, 4, 4)
+    cov = np.zeros((len(ok), 6, 6))
+    s2 = np.square(np.asarray(sigmas_m, dtype=float)[ok]) if len(sigmas_m) == len(res.online) else np.zeros(len(ok))
+    cov[:, 0, 0] = cov[:, 1, 1] = s2
+    prior_t = np.asarray(res.engine.map_prior_times())
+    keep = np.isin(t, prior_t)
+    write_bag(path, kind, (t, poses), frame="map", child_frame="base_link", odometry_topic="/mapfusion/odometry",
+              covariances=cov, markers=("/mapfusion/map_priors", t[keep], xyz[keep]))
+    return len(ok)

@@ -1,0 +1,110 @@
+"""ROS bags (issue 20): a simulated run written to ROS 2 (mcap, sqlite3) and ROS 1 bags, fused from
+the bag, gives the run directory's estimate; --out-bag reads back; bad bags are one line, exit 2."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapfusion.bags import BagKind, read_bag, write_bag
+from mapfusion.formats import read_gps_csv, read_imu_csv, read_tum, tum_to_matrices
+from mapfusion.harness.cli import main
+
+pytestmark = pytest.mark.sumo
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    """A short SUMO drive on the grid map with GPS throughout."""
+    d = tmp_path_factory.mktemp("bagrun")
+    sc = d / "s.toml"
+    sc.write_text('name = "bag"\nmap = "grid"\nseed = 5\nduration_s = 150.0\nmin_route_m = 1000.0\n'
+                  '[gps]\nmode = "continuous"\n')
+    assert main(["simulate", str(sc), "--out", str(d / "run")]) == 0
+    return d / "run"
+
+
+def _bag_of(run, path, kind: BagKind, child_frame: str = "base_link"):
+    t, xyz, q = read_tum(run / "odometry.tum")
+    return write_bag(path, kind, (t, tum_to_matrices(xyz, q)), read_gps_csv(run / "gps.csv"),
+                     read_imu_csv(run / "imu.csv"), child_frame=child_frame)
+
+
+@pytest.mark.parametrize("kind", list(BagKind), ids=lambda k: k.value)
+def test_a_bag_reads_back_what_was_written(run_dir, tmp_path, kind):
+    bag = _bag_of(run_dir, tmp_path / ("b.bag" if kind is BagKind.ros1 else "b"), kind)
+    d = read_bag(bag, "/odom", "/gps/fix", "/imu")
+    t, xyz, q = read_tum(run_dir / "odometry.tum")
+    gps = read_gps_csv(run_dir / "gps.csv")
+    assert np.allclose(d.t_s, t, atol=1e-9, rtol=0)
+    assert np.allclose(d.poses, tum_to_matrices(xyz, q), atol=1e-12, rtol=0)
+    assert np.allclose(d.gps.lat_deg, gps.lat_deg, atol=0, rtol=0) and np.allclose(d.gps.sigma_m, gps.sigma_m)
+    assert len(d.imu[0]) == len(read_imu_csv(run_dir / "imu.csv")[0]) and not d.camera_frame
+
+
+@pytest.mark.parametrize("kind", list(BagKind), ids=lambda k: k.value)
+def test_fusing_the_bag_gives_the_run_directorys_estimate(run_dir, tmp_path, kind, capsys):
+    bag = _bag_of(run_dir, tmp_path / ("b.bag" if kind is BagKind.ros1 else "b"), kind)
+    from_files, from_bag = tmp_path / "files.tum", tmp_path / "bag.tum"
+    assert main(["fuse", "--map", "grid", "--odometry", str(run_dir / "odometry.tum"), "--gps",
+                 str(run_dir / "gps.csv"), "--out", str(from_files)]) == 0
+    assert main(["fuse", "--map", "grid", "--bag", str(bag), "--odometry-topic", "/odom", "--gps-topic", "/gps/fix",
+                 "--imu-topic", "/imu", "--out", str(from_bag)]) == 0
+    ta, xa, qa = read_tum(from_files)
+    tb, xb, qb = read_tum(from_bag)
+    assert len(ta) > 1000 and np.array_equal(ta, tb)
+    assert np.max(np.abs(xa - xb)) <= 1e-9  # both written to 0.1 mm: equal unless an estimate moved
+    assert np.max(np.abs(np.abs(qa) - np.abs(qb))) <= 1e-9
+
+
+def test_an_optical_child_frame_is_read_as_camera_axes(run_dir, tmp_path):
+    from mapfusion.replay import body_to_camera
+
+    t, xyz, q = read_tum(run_dir / "odometry.tum")
+    body = tum_to_matrices(xyz, q)
+    bag = write_bag(tmp_path / "cam", BagKind.mcap, (t, body_to_camera(body)), child_frame="camera_optical_frame")
+    d = read_bag(bag, "/odom")
+    assert d.camera_frame and np.allclose(d.poses, body, atol=1e-9)
+
+
+def test_the_out_bag_replays_with_the_right_types_and_frames(run_dir, tmp_path):
+    from rosbags.highlevel import AnyReader
+
+    out = tmp_path / "est"
+    assert main(["fuse", "--map", "grid", "--odometry", str(run_dir / "odometry.tum"), "--gps",
+                 str(run_dir / "gps.csv"), "--out", str(tmp_path / "e.tum"), "--out-bag", str(out)]) == 0
+    with AnyReader([out]) as r:
+        types = {c.topic: c.msgtype for c in r.connections}
+        assert types == {"/mapfusion/odometry": "nav_msgs/msg/Odometry",
+                         "/mapfusion/map_priors": "visualization_msgs/msg/MarkerArray"}
+        conn = next(c for c in r.connections if c.topic == "/mapfusion/odometry")
+        msgs = [r.deserialize(raw, c.msgtype) for c, _, raw in r.messages(connections=[conn])]
+    t, xyz, _ = read_tum(tmp_path / "e.tum")
+    assert len(msgs) == len(t)
+    assert {m.header.frame_id for m in msgs} == {"map"} and {m.child_frame_id for m in msgs} == {"base_link"}
+    assert abs(msgs[-1].pose.pose.position.x - xyz[-1, 0]) < 1e-4
+    assert max(m.pose.covariance[0] for m in msgs) > 0  # the marginals' σ²
+
+
+@pytest.mark.parametrize("case,needle", [
+    ("truncated", "cannot read the bag"),
+    ("wrong-type", "is sensor_msgs/msg/NavSatFix"),
+    ("no-gps-topic", "/gps/none is not in the bag"),
+    ("missing", "no such bag"),
+])
+def test_a_bad_bag_is_one_line_and_exit_2(run_dir, tmp_path, capsys, case, needle):
+    bag = _bag_of(run_dir, tmp_path / "b.bag", BagKind.ros1)
+    odo_topic, gps_topic = "/odom", "/gps/fix"
+    if case == "truncated":
+        bag.write_bytes(bag.read_bytes()[: bag.stat().st_size // 3])
+    elif case == "wrong-type":
+        odo_topic = "/gps/fix"
+    elif case == "no-gps-topic":
+        gps_topic = "/gps/none"
+    elif case == "missing":
+        bag = tmp_path / "none.bag"
+    code = main(["fuse", "--map", "grid", "--bag", str(bag), "--odometry-topic", odo_topic, "--gps-topic", gps_topic,
+                 "--out", str(tmp_path / "e.tum")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and needle in err[0], err
+    assert not (tmp_path / "e.tum").exists()
