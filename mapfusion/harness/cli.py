@@ -800,6 +800,30 @@ def plot(
     console.print(f"wrote {out}")
 
 
+@app.command()
+def export(
+    run_dir: Annotated[Path, typer.Argument(help="A run directory (from mapfusion run, simulate or import).")],
+    geojson: Annotated[Optional[Path], typer.Option("--geojson", help="GeoJSON (RFC 7946) to write: truth, estimates, "
+                                                    "GPS fixes, map priors, GPS-denied zones.")] = None,
+    gpx: Annotated[Optional[Path], typer.Option("--gpx", help="GPX 1.1 to write: a track per trajectory.")] = None,
+) -> None:
+    """A run for GIS tools (QGIS, geojson.io, kepler.gl) and GPS software: GeoJSON and GPX."""
+    from .export import write_geojson, write_gpx
+
+    if geojson is None and gpx is None:
+        _fail("give --geojson FILE and/or --gpx FILE")
+    for opt, path in (("--geojson", geojson), ("--gpx", gpx)):
+        if path is not None:
+            _check_output_file(path, opt, {"RUN": run_dir})
+    try:
+        for path, write in ((geojson, write_geojson), (gpx, write_gpx)):
+            if path is not None:
+                write(run_dir, path)
+                console.print(f"wrote {path}")
+    except InputError as exc:
+        _fail(str(exc))
+
+
 #: The demo drive: Helsinki in rain, an 80 m GPS-denied, visually degraded zone (an underpass),
 #: stereo VO, GPS for the first 120 s only. Seed 7 is a drive where the zone falls on a stretch the
 #: VO can bridge; on longer zones a VO that loses track de-localises, as the paper's DROID-SLAM does.

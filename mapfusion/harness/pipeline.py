@@ -178,6 +178,9 @@ def write_run(d: Path, sc: Scenario, o: RunOutcome, plot: bool = True) -> None:
     events = {"map_prior_t": [float(t) for t in eng.map_prior_times()], "counters": eng.counters.as_dict(),
               "initialised_at_s": eng.initialised_at, "scale": eng.scale, "scale_sigma": eng.scale_sigma}
     (d / "fusion_events.json").write_text(json.dumps(events, indent=2) + "\n")
+    from .export import write_geojson
+
+    write_geojson(d, d / "run.geojson", road=o.road)
     if plot:
         from .plot import plot_run
 

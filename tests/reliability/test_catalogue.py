@@ -281,6 +281,9 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
     # ---- bench
     ("bench-city", ["bench", "--city-km", "50x50"], {}, ["--city-km"]),
     ("bench-duration", ["bench", "--duration-s", "10"], {}, ["--duration-s"]),
+    ("export-not-a-run", ["export", "{d}", "--geojson", "{d}/x.geojson"], {}, ["not a run directory"]),
+    ("export-nothing", ["export", "{d}"], {}, ["--geojson"]),
+    ("export-out-directory", ["export", "{d}", "--gpx", "{d}/od"], {"od/x": ""}, ["--gpx"]),
     ("demo-out-file", ["demo", "--out", "{d}/r"], {"r": "a file"}, ["--out"]),
     # ---- the command line itself
     ("unknown-command", ["fly"], {}, ["fly"]),
