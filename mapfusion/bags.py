@@ -24,6 +24,7 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 IMU = "sensor_msgs/msg/Imu"
 MARKERS = "visualization_msgs/msg/MarkerArray"
+WHEEL = "geometry_msgs/msg/TwistStamped"  # a wheel-speed topic: twist.linear.x is the speed (m/s)
 
 
 class BagError(FormatError):
@@ -48,6 +49,7 @@ class BagData:
     gps_without_fix: int  # NavSatFix messages with status −1, skipped
     imu: tuple[np.ndarray, np.ndarray, np.ndarray] | None  # t, accel (N, 3), gyro (N, 3)
     camera_frame: bool  # the odometry's child frame was an optical (camera) frame
+    wheel: tuple[np.ndarray, np.ndarray] | None = None  # t, speed (m/s)
 
 
 def _stamp(msg) -> float:
@@ -68,7 +70,7 @@ def _is_optical(child_frame: str) -> bool:
 
 
 def read_bag(path: str | Path, odometry_topic: str, gps_topic: str | None = None,
-             imu_topic: str | None = None) -> BagData:
+             imu_topic: str | None = None, wheel_topic: str | None = None) -> BagData:
     """Read the named topics of a ROS 1 or ROS 2 bag (:class:`BagError` on any problem)."""
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
@@ -77,7 +79,7 @@ def read_bag(path: str | Path, odometry_topic: str, gps_topic: str | None = None
     if not p.exists():
         raise BagError(f"{p}: no such bag")
     pairs = [(odometry_topic, ODOMETRY)] + ([(gps_topic, NAVSATFIX)] if gps_topic else []) + (
-        [(imu_topic, IMU)] if imu_topic else [])
+        [(imu_topic, IMU)] if imu_topic else []) + ([(wheel_topic, WHEEL)] if wheel_topic else [])
     wanted = dict(pairs)
     try:
         with AnyReader([p], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
@@ -93,12 +95,16 @@ def read_bag(path: str | Path, odometry_topic: str, gps_topic: str | None = None
     except Exception as exc:  # noqa: BLE001 - rosbags' many reader errors: a truncated or foreign file
         why = str(exc).splitlines()[0] if str(exc) else ""
         raise BagError(f"{p}: cannot read the bag ({type(exc).__name__}: {why})") from None
-    return _assemble(p, got, odometry_topic, gps_topic, imu_topic)
+    data = _assemble(p, got, odometry_topic, gps_topic, imu_topic)
+    if wheel_topic:
+        w = np.array(sorted(got[WHEEL]), dtype=float).reshape(-1, 2)
+        data.wheel = (w[:, 0], w[:, 1])
+    return data
 
 
 def _collect(reader, wanted: dict[str, str]) -> dict:
     """The messages of the wanted topics, decoded into plain rows by type."""
-    got: dict = {ODOMETRY: [], NAVSATFIX: [], IMU: [], "no_fix": 0, "camera": False}
+    got: dict = {ODOMETRY: [], NAVSATFIX: [], IMU: [], WHEEL: [], "no_fix": 0, "camera": False}
     conns = [c for c in reader.connections if c.topic in wanted]
     for conn, _t, raw in reader.messages(connections=conns):
         msg = reader.deserialize(raw, conn.msgtype)
@@ -116,6 +122,8 @@ def _collect(reader, wanted: dict[str, str]) -> dict:
             cov = np.asarray(msg.position_covariance, dtype=float)
             sigma = math.sqrt(0.5 * (cov[0] + cov[4])) if msg.position_covariance_type > 0 else math.nan
             got[NAVSATFIX].append((_stamp(msg), msg.latitude, msg.longitude, msg.altitude, sigma))
+        elif conn.msgtype == WHEEL:
+            got[WHEEL].append((_stamp(msg), msg.twist.linear.x))
         else:
             a, g = msg.linear_acceleration, msg.angular_velocity
             got[IMU].append((_stamp(msg), a.x, a.y, a.z, g.x, g.y, g.z))
@@ -178,7 +186,8 @@ def write_bag(path: str | Path, kind: BagKind | str, odometry: tuple[np.ndarray,
               gps: GpsFixes | None = None, imu: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
               odometry_topic: str = "/odom", gps_topic: str = "/gps/fix", imu_topic: str = "/imu",
               frame: str = "odom", child_frame: str = "base_link", covariances: np.ndarray | None = None,
-              markers: tuple[str, np.ndarray, np.ndarray] | None = None) -> Path:
+              markers: tuple[str, np.ndarray, np.ndarray] | None = None,
+              wheel: tuple[np.ndarray, np.ndarray] | None = None, wheel_topic: str = "/wheel_speed") -> Path:
     """A bag of ``kind`` with the given streams: odometry (t, (N, 4, 4) poses) as nav_msgs/Odometry
     (``covariances``: (N, 6, 6), else zero), fixes as NavSatFix (σ → a diagonal covariance, a NaN σ
     → covariance type unknown), IMU samples; ``markers`` (topic, t, (M, 3) positions) as one
@@ -194,6 +203,8 @@ def write_bag(path: str | Path, kind: BagKind | str, odometry: tuple[np.ndarray,
         streams.append((gps_topic, NAVSATFIX, _gps_msgs(ts, gps)))
     if imu is not None:
         streams.append((imu_topic, IMU, _imu_msgs(ts, imu)))
+    if wheel is not None:
+        streams.append((wheel_topic, WHEEL, _wheel_msgs(ts, wheel)))
     if markers is not None:
         topic, mt, xyz = markers
         items = [_sphere(ts, i, float(t), p_) for i, (t, p_) in enumerate(zip(mt, xyz))]
@@ -242,6 +253,15 @@ def _gps_msgs(ts, gps: GpsFixes) -> list:
                                            altitude=alt if math.isfinite(alt) else 0.0, position_covariance=cov,
                                            position_covariance_type=2 if known else 0)))
     return out
+
+
+def _wheel_msgs(ts, wheel) -> list:
+    T = ts.types
+    v3 = T["geometry_msgs/msg/Vector3"]
+    return [(float(t), T[WHEEL](header=_header(ts, t, "base_link"),
+                                twist=T["geometry_msgs/msg/Twist"](linear=v3(x=float(v), y=0.0, z=0.0),
+                                                                   angular=v3(x=0.0, y=0.0, z=0.0))))
+            for t, v in zip(*wheel)]
 
 
 def _imu_msgs(ts, imu) -> list:

@@ -313,18 +313,22 @@ def import_bag_cmd(
     out: Annotated[Path, typer.Option("--out", "-o", help="Run directory to write.")],
     gps_topic: Annotated[Optional[str], typer.Option("--gps-topic", help="Its sensor_msgs/NavSatFix topic.")] = None,
     imu_topic: Annotated[Optional[str], typer.Option("--imu-topic", help="Its sensor_msgs/Imu topic.")] = None,
+    wheel_topic: Annotated[Optional[str], typer.Option("--wheel-topic", help="Its wheel speed: a "
+                                                       "geometry_msgs/TwistStamped topic, twist.linear.x in m/s.")] = None,
 ) -> None:
-    """A bag's odometry, GPS and IMU as the files fuse reads: odometry.tum (body convention),
-    gps.csv, imu.csv."""
+    """A bag's odometry, GPS, IMU and wheel speed as files: odometry.tum (body convention), gps.csv,
+    imu.csv, wheel.csv (t,speed_mps)."""
     from mapfusion.bags import read_bag
     from mapfusion.formats import matrices_to_tum, write_gps_csv, write_imu_csv, write_tum
 
     _check_output_dir(out, "--out", [bag])
     try:
-        data = read_bag(bag, odometry_topic, gps_topic, imu_topic)
+        data = read_bag(bag, odometry_topic, gps_topic, imu_topic, wheel_topic)
     except InputError as exc:
         _fail(str(exc))
     out.mkdir(parents=True, exist_ok=True)
+    if data.wheel is not None:
+        (out / "wheel.csv").write_text("t,speed_mps\n" + "".join(f"{t:.6f},{v:.4f}\n" for t, v in zip(*data.wheel)))
     xyz, q = matrices_to_tum(data.poses)
     write_tum(out / "odometry.tum", data.t_s, xyz, q, header=f"{odometry_topic} of {bag}")
     if data.gps is not None:
@@ -423,6 +427,9 @@ def fuse(
     gps_topic: Annotated[Optional[str], typer.Option("--gps-topic", help="The bag's sensor_msgs/NavSatFix topic.")] = None,
     imu_topic: Annotated[Optional[str], typer.Option("--imu-topic", help="The bag's sensor_msgs/Imu topic (read and "
                                                      "checked, as --imu).")] = None,
+    wheel_topic: Annotated[Optional[str], typer.Option("--wheel-topic", help="The bag's wheel speed "
+                                                       "(geometry_msgs/TwistStamped): read and checked; the engine "
+                                                       "does not fuse wheel speed yet.")] = None,
     out_bag: Annotated[Optional[Path], typer.Option("--out-bag", help="Also write the online estimate (nav_msgs/Odometry, "
                                                     "frame map, child base_link) and the map priors (a MarkerArray) "
                                                     "as a bag: NAME.bag is ROS 1, any other name a ROS 2 bag folder "
@@ -462,10 +469,10 @@ def fuse(
         if gps is not None or imu is not None or times is not None:
             _fail("--bag takes its GPS and IMU from --gps-topic and --imu-topic, not --gps, --imu or --times")
         _fuse_bag(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s, config, no_map, out, smoothed,
-                  out_bag)
+                  out_bag, wheel_topic)
         return
-    if odometry_topic or gps_topic or imu_topic:
-        _fail("--odometry-topic, --gps-topic and --imu-topic go with --bag")
+    if odometry_topic or gps_topic or imu_topic or wheel_topic:
+        _fail("--odometry-topic, --gps-topic, --imu-topic and --wheel-topic go with --bag")
     try:
         try:
             fmt, frame = OdometryFormat(odometry_format), OdometryFrame(odometry_frame)
@@ -502,7 +509,7 @@ def _fuse_files_with_bag(inputs, cfg, out: Path, smoothed, out_bag: Path, no_map
 
 
 def _fuse_bag(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s, config, no_map, out, smoothed,
-              out_bag) -> None:
+              out_bag, wheel_topic=None) -> None:
     """``fuse --bag``: the engine on a bag's topics."""
     from mapfusion.bags import BagKind
     from mapfusion.replay import load_fusion_config
@@ -512,8 +519,8 @@ def _fuse_bag(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s, 
     try:
         cfg = load_fusion_config(config, **({"use_map": False} if no_map else {}))
         with _FrameBar() as bar:
-            res, data, sigmas = fuse_bag(BagInputs(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s),
-                                         cfg, progress=bar.update)
+            res, data, sigmas = fuse_bag(BagInputs(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s,
+                                                   wheel_topic), cfg, progress=bar.update)
     except InputError as exc:
         _fail(str(exc))
     eng = res.engine
@@ -788,16 +795,30 @@ def _exclusive_lock(path: Path, option: str):
 @app.command()
 def plot(
     run_dir: Annotated[Path, typer.Argument(help="A run directory (from mapfusion run or simulate).")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="PNG to write (1200 × 1000 px).")],
+    out: Annotated[Optional[Path], typer.Option("--out", "-o", help="Picture to write (PNG: 1200 × 1000 px; or "
+                                                "any format matplotlib writes, by its extension).")] = None,
+    html: Annotated[Optional[Path], typer.Option("--html", help="Interactive map to write (Leaflet via folium; works "
+                                                 "offline, OpenStreetMap tiles beneath when online).")] = None,
 ) -> None:
     """Roads, truth, odometry, Map-Fusion, GPS fixes, GPS-denied zones and map priors; error over distance."""
     from .plot import plot_run
 
+    if out is None and html is None:
+        _fail("give --out FILE.png and/or --html FILE.html")
+    for opt, path in (("--out", out), ("--html", html)):
+        if path is not None:
+            _check_output_file(path, opt, {"RUN": run_dir})
     try:
-        plot_run(run_dir, out)
+        if out is not None:
+            plot_run(run_dir, out)
+            console.print(f"wrote {out}")
+        if html is not None:
+            from .webmap import write_html
+
+            write_html(run_dir, html)
+            console.print(f"wrote {html}")
     except InputError as exc:
         _fail(str(exc))
-    console.print(f"wrote {out}")
 
 
 @app.command()
@@ -806,17 +827,22 @@ def export(
     geojson: Annotated[Optional[Path], typer.Option("--geojson", help="GeoJSON (RFC 7946) to write: truth, estimates, "
                                                     "GPS fixes, map priors, GPS-denied zones.")] = None,
     gpx: Annotated[Optional[Path], typer.Option("--gpx", help="GPX 1.1 to write: a track per trajectory.")] = None,
+    bag: Annotated[Optional[Path], typer.Option("--bag", help="The run's sensors as a bag (NAME.bag: ROS 1, any other "
+                                                "name: a ROS 2 bag folder, MCAP): /odom (nav_msgs/Odometry), "
+                                                "/gps/fix (sensor_msgs/NavSatFix), /imu (sensor_msgs/Imu).")] = None,
 ) -> None:
-    """A run for GIS tools (QGIS, geojson.io, kepler.gl) and GPS software: GeoJSON and GPX."""
-    from .export import write_geojson, write_gpx
+    """A run for GIS tools (QGIS, geojson.io, kepler.gl), GPS software and ROS: GeoJSON, GPX, a bag."""
+    from .export import write_geojson, write_gpx, write_sensor_bag
 
-    if geojson is None and gpx is None:
-        _fail("give --geojson FILE and/or --gpx FILE")
-    for opt, path in (("--geojson", geojson), ("--gpx", gpx)):
+    if geojson is None and gpx is None and bag is None:
+        _fail("give --geojson FILE, --gpx FILE and/or --bag PATH")
+    for opt, path in (("--geojson", geojson), ("--gpx", gpx), ("--bag", bag)):
         if path is not None:
             _check_output_file(path, opt, {"RUN": run_dir})
+    if bag is not None and bag.exists():
+        _fail(f"--bag {bag} exists: a bag is never overwritten")
     try:
-        for path, write in ((geojson, write_geojson), (gpx, write_gpx)):
+        for path, write in ((geojson, write_geojson), (gpx, write_gpx), (bag, write_sensor_bag)):
             if path is not None:
                 write(run_dir, path)
                 console.print(f"wrote {path}")

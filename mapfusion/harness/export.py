@@ -136,3 +136,19 @@ def write_gpx(run_dir: str | Path, path: str | Path, road=None) -> Path:
     p = Path(path)
     p.write_text("\n".join(lines) + "\n")
     return p
+
+
+def write_sensor_bag(run_dir: str | Path, path: str | Path, road=None) -> Path:
+    """The run's odometry, GPS and IMU as a bag (``NAME.bag``: ROS 1; else a ROS 2 MCAP folder) on
+    /odom, /gps/fix and /imu: what ``mapfusion fuse --bag`` reads."""
+    from mapfusion.bags import BagKind, write_bag
+    from mapfusion.formats import read_imu_csv, tum_to_matrices
+
+    run = Path(run_dir)
+    if not (run / "odometry.tum").exists():
+        raise InputError(f"{run}: not a run directory with sensors (no odometry.tum)")
+    t, xyz, q = read_tum(run / "odometry.tum")
+    gps = read_gps_csv(run / "gps.csv") if (run / "gps.csv").exists() else None
+    imu = read_imu_csv(run / "imu.csv") if (run / "imu.csv").exists() else None
+    kind = BagKind.ros1 if Path(path).suffix == ".bag" else BagKind.mcap
+    return write_bag(path, kind, (t, tum_to_matrices(xyz, q)), gps, imu)

@@ -340,6 +340,7 @@ class BagInputs:
     gps_topic: str | None = None
     imu_topic: str | None = None
     gps_until_s: float | None = None
+    wheel_topic: str | None = None  # read and checked; the engine does not fuse wheel speed yet (issue 18)
 
 
 def fuse_bag(inputs: BagInputs, cfg: FusionConfig, progress=None):
@@ -348,7 +349,7 @@ def fuse_bag(inputs: BagInputs, cfg: FusionConfig, progress=None):
     from mapfusion.bags import read_bag
     from mapfusion.maps import resolve_map
 
-    data = read_bag(inputs.bag, inputs.odometry_topic, inputs.gps_topic, inputs.imu_topic)
+    data = read_bag(inputs.bag, inputs.odometry_topic, inputs.gps_topic, inputs.imu_topic, inputs.wheel_topic)
     fixes = data.gps
     if fixes is not None and inputs.gps_until_s is not None:
         fixes = fixes.until(float(data.t_s[0]) + inputs.gps_until_s)

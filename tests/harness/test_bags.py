@@ -108,3 +108,29 @@ def test_a_bad_bag_is_one_line_and_exit_2(run_dir, tmp_path, capsys, case, needl
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and needle in err[0], err
     assert not (tmp_path / "e.tum").exists()
+
+
+@pytest.mark.parametrize("name", ["run_bag", "run.bag"])
+def test_the_readmes_bag_example_end_to_end(run_dir, tmp_path, name):
+    """export --bag, then fuse --bag with --out-bag: the README's commands, on a simulated run."""
+    bag = tmp_path / name
+    assert main(["export", str(run_dir), "--bag", str(bag)]) == 0
+    assert main(["fuse", "--map", "grid", "--bag", str(bag), "--odometry-topic", "/odom", "--gps-topic", "/gps/fix",
+                 "--imu-topic", "/imu", "--out", str(tmp_path / "est.tum"), "--out-bag", str(tmp_path / "est_bag")]) == 0
+    assert main(["fuse", "--map", "grid", "--odometry", str(run_dir / "odometry.tum"), "--gps",
+                 str(run_dir / "gps.csv"), "--out", str(tmp_path / "files.tum")]) == 0
+    _, xa, _ = read_tum(tmp_path / "files.tum")
+    _, xb, _ = read_tum(tmp_path / "est.tum")
+    assert np.max(np.abs(xa - xb)) <= 1e-9
+    assert read_bag(tmp_path / "est_bag", "/mapfusion/odometry").t_s.size == len(xb)
+
+
+def test_a_wheel_speed_topic_becomes_wheel_csv(run_dir, tmp_path):
+    t, xyz, q = read_tum(run_dir / "odometry.tum")
+    speed = np.linspace(0.0, 12.5, len(t))
+    bag = write_bag(tmp_path / "w", BagKind.sqlite3, (t, tum_to_matrices(xyz, q)), wheel=(t, speed))
+    assert main(["import", "bag", "--bag", str(bag), "--odometry-topic", "/odom", "--wheel-topic", "/wheel_speed",
+                 "--out", str(tmp_path / "r")]) == 0
+    rows = (tmp_path / "r" / "wheel.csv").read_text().splitlines()
+    assert rows[0] == "t,speed_mps" and len(rows) == len(t) + 1
+    assert abs(float(rows[-1].split(",")[1]) - 12.5) < 1e-4

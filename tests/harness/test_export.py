@@ -79,3 +79,40 @@ def test_export_bad_input(tmp_path, capsys):
     assert main(["export", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "not a run directory" in err[0] and "--geojson" in err[1]
+
+
+def test_the_html_map_is_self_contained(run, tmp_path):
+    from mapfusion.harness.webmap import needs_network
+
+    page = tmp_path / "map.html"
+    assert main(["plot", str(run), "--html", str(page)]) == 0
+    text = page.read_text()
+    assert not needs_network(page)  # Leaflet inlined: the page works offline
+    assert "roads (this test bed" in text and "Map-Fusion" in text and "map prior" in text
+
+
+CHROMIUM = next((p for p in ("/usr/bin/chromium", "/usr/bin/chromium-browser") if __import__("os").path.exists(p)), None)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None, reason="Debian's chromium is not installed (.ci/run installs it)")
+def test_the_html_map_draws_its_roads_in_a_real_browser(run, tmp_path):
+    """Headless Chromium, no network: the road layer (our own map) is drawn."""
+    import subprocess
+
+    import matplotlib.image as mpimg
+    import numpy as np
+
+    from mapfusion.harness.webmap import ROAD_COLOUR
+
+    page, shot = tmp_path / "map.html", tmp_path / "shot.png"
+    assert main(["plot", str(run), "--html", str(page)]) == 0
+    subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                    f"--user-data-dir={tmp_path / 'profile'}", "--window-size=1000,800", "--virtual-time-budget=5000",
+                    f"--screenshot={shot}", page.as_uri()], capture_output=True, timeout=120, check=True)
+    img = (mpimg.imread(shot)[:, :, :3] * 255).round().astype(int)
+    road = np.array([int(ROAD_COLOUR[i:i + 2], 16) for i in (1, 3, 5)])
+    road_pixels = int(np.all(np.abs(img - road) <= 2, axis=2).sum())
+    assert road_pixels > 2000, road_pixels  # the grid's streets, three pixels wide
+    assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50  # a drawn map, not a blank page
