@@ -50,6 +50,7 @@ class BagData:
     imu: tuple[np.ndarray, np.ndarray, np.ndarray] | None  # t, accel (N, 3), gyro (N, 3)
     camera_frame: bool  # the odometry's child frame was an optical (camera) frame
     wheel: tuple[np.ndarray, np.ndarray] | None = None  # t, speed (m/s)
+    position_var_m2: np.ndarray | None = None  # per odometry message: mean of the x and y pose variances
 
 
 def _stamp(msg) -> float:
@@ -114,7 +115,8 @@ def _collect(reader, wanted: dict[str, str]) -> dict:
             m = np.eye(4)
             m[:3, :3] = _quat_matrix(q.x, q.y, q.z, q.w)
             m[:3, 3] = (pos.x, pos.y, pos.z)
-            got[ODOMETRY].append((_stamp(msg), m))
+            cov = msg.pose.covariance
+            got[ODOMETRY].append((_stamp(msg), m, 0.5 * (float(cov[0]) + float(cov[7]))))
         elif conn.msgtype == NAVSATFIX:
             if msg.status.status < 0:
                 got["no_fix"] += 1
@@ -138,6 +140,7 @@ def _assemble(p: Path, got: dict, odometry_topic: str, gps_topic: str | None, im
     if np.any(np.diff(t) <= 0):
         raise BagError(f"{p}: {odometry_topic} has two messages with the same header stamp")
     poses = np.array([r[1] for r in odo])
+    var = np.array([r[2] for r in odo])
     if got["camera"]:
         from .replay import camera_to_body
 
@@ -150,7 +153,21 @@ def _assemble(p: Path, got: dict, odometry_topic: str, gps_topic: str | None, im
     if imu_topic:
         b = np.array(sorted(got[IMU]), dtype=float).reshape(-1, 7)
         imu = (b[:, 0], b[:, 1:4], b[:, 4:7])
-    return BagData(t, poses, gps, got["no_fix"], imu, got["camera"])
+    return BagData(t, poses, gps, got["no_fix"], imu, got["camera"],
+                   position_var_m2=var if np.any(var > 0) and np.all(np.isfinite(var)) else None)
+
+
+def sigma_per_m_from_covariance(poses: np.ndarray, position_var_m2: np.ndarray) -> float | None:
+    """The odometry's σ per metre of a step (the engine's ``odometry_sigma_per_m``) from the growth
+    of its published position variance: steps of length L with σ = s·L add s²·L² of variance each,
+    so the variance grows by s²·L̄ per metre driven. None when it does not grow."""
+    steps = np.hypot(*np.diff(poses[:, :2, 3], axis=0).T)
+    driven = float(steps.sum())
+    growth = float(position_var_m2[-1] - position_var_m2[0])
+    if driven <= 0 or growth <= 0 or not np.any(steps > 0):
+        return None
+    mean_step = float(steps[steps > 0].mean())
+    return math.sqrt(growth / driven / mean_step)
 
 
 # ----------------------------------------------------------------------------- writing

@@ -427,6 +427,9 @@ def fuse(
     gps_topic: Annotated[Optional[str], typer.Option("--gps-topic", help="The bag's sensor_msgs/NavSatFix topic.")] = None,
     imu_topic: Annotated[Optional[str], typer.Option("--imu-topic", help="The bag's sensor_msgs/Imu topic (read and "
                                                      "checked, as --imu).")] = None,
+    bag_covariance: Annotated[bool, typer.Option("--bag-covariance/--no-bag-covariance", help="With --bag: the "
+                                                 "odometry's published pose covariance, where it grows, sets the "
+                                                 "engine's odometry_sigma_per_m (its growth per metre driven).")] = True,
     wheel_topic: Annotated[Optional[str], typer.Option("--wheel-topic", help="The bag's wheel speed "
                                                        "(geometry_msgs/TwistStamped): read and checked; the engine "
                                                        "does not fuse wheel speed yet.")] = None,
@@ -469,7 +472,7 @@ def fuse(
         if gps is not None or imu is not None or times is not None:
             _fail("--bag takes its GPS and IMU from --gps-topic and --imu-topic, not --gps, --imu or --times")
         _fuse_bag(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s, config, no_map, out, smoothed,
-                  out_bag, wheel_topic)
+                  out_bag, wheel_topic, bag_covariance)
         return
     if odometry_topic or gps_topic or imu_topic or wheel_topic:
         _fail("--odometry-topic, --gps-topic, --imu-topic and --wheel-topic go with --bag")
@@ -509,7 +512,7 @@ def _fuse_files_with_bag(inputs, cfg, out: Path, smoothed, out_bag: Path, no_map
 
 
 def _fuse_bag(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s, config, no_map, out, smoothed,
-              out_bag, wheel_topic=None) -> None:
+              out_bag, wheel_topic=None, bag_covariance: bool = True) -> None:
     """``fuse --bag``: the engine on a bag's topics."""
     from mapfusion.bags import BagKind
     from mapfusion.replay import load_fusion_config
@@ -520,7 +523,7 @@ def _fuse_bag(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s, 
         cfg = load_fusion_config(config, **({"use_map": False} if no_map else {}))
         with _FrameBar() as bar:
             res, data, sigmas = fuse_bag(BagInputs(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s,
-                                                   wheel_topic), cfg, progress=bar.update)
+                                                   wheel_topic, bag_covariance), cfg, progress=bar.update)
     except InputError as exc:
         _fail(str(exc))
     eng = res.engine
@@ -532,6 +535,9 @@ def _fuse_bag(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s, 
         write_estimate_bag(out_bag, BagKind.ros1 if out_bag.suffix == ".bag" else BagKind.mcap, res, sigmas)
     if data.camera_frame:
         err_console.print(f"{odometry_topic}: an optical (camera) child frame: read as x right, y down, z forward")
+    if eng.cfg.odometry_sigma_per_m != cfg.odometry_sigma_per_m:
+        err_console.print(f"{odometry_topic}: its pose covariance sets odometry_sigma_per_m = "
+                          f"{eng.cfg.odometry_sigma_per_m:.4g} m/m (--no-bag-covariance keeps {cfg.odometry_sigma_per_m:g})")
     if data.gps_without_fix:
         err_console.print(f"{gps_topic}: {data.gps_without_fix} message(s) without a fix (status −1) skipped")
     _fuse_summary(eng, n, out)

@@ -341,6 +341,7 @@ class BagInputs:
     imu_topic: str | None = None
     gps_until_s: float | None = None
     wheel_topic: str | None = None  # read and checked; the engine does not fuse wheel speed yet (issue 18)
+    use_covariance: bool = True  # the odometry's published pose covariance sets odometry_sigma_per_m
 
 
 def fuse_bag(inputs: BagInputs, cfg: FusionConfig, progress=None):
@@ -349,7 +350,13 @@ def fuse_bag(inputs: BagInputs, cfg: FusionConfig, progress=None):
     from mapfusion.bags import read_bag
     from mapfusion.maps import resolve_map
 
+    from mapfusion.bags import sigma_per_m_from_covariance
+
     data = read_bag(inputs.bag, inputs.odometry_topic, inputs.gps_topic, inputs.imu_topic, inputs.wheel_topic)
+    if inputs.use_covariance and data.position_var_m2 is not None:
+        s = sigma_per_m_from_covariance(data.poses, data.position_var_m2)
+        if s is not None:  # the odometry's own covariance sets the engine's σ per metre
+            cfg = dataclasses.replace(cfg, odometry_sigma_per_m=s)
     fixes = data.gps
     if fixes is not None and inputs.gps_until_s is not None:
         fixes = fixes.until(float(data.t_s[0]) + inputs.gps_until_s)
@@ -360,7 +367,7 @@ def fuse_bag(inputs: BagInputs, cfg: FusionConfig, progress=None):
     sigmas: list[float] = []
     res = fuse(road, data.t_s, data.poses, fixes, cfg, progress=progress,
                on_frame=lambda e: sigmas.append(e.position_sigma_m))
-    return res, data, np.asarray(sigmas)
+    return res, data, np.asarray(sigmas)  # res.engine.cfg holds the σ the covariance set
 
 
 def write_estimate_bag(path: Path, kind, res: FusionResult, sigmas_m: np.ndarray) -> int:

@@ -134,3 +134,24 @@ def test_a_wheel_speed_topic_becomes_wheel_csv(run_dir, tmp_path):
     rows = (tmp_path / "r" / "wheel.csv").read_text().splitlines()
     assert rows[0] == "t,speed_mps" and len(rows) == len(t) + 1
     assert abs(float(rows[-1].split(",")[1]) - 12.5) < 1e-4
+
+
+def test_the_odometrys_covariance_sets_its_sigma_per_metre(run_dir, tmp_path, capsys):
+    from mapfusion.bags import sigma_per_m_from_covariance
+
+    t, xyz, q = read_tum(run_dir / "odometry.tum")
+    poses = tum_to_matrices(xyz, q)
+    steps = np.hypot(*np.diff(xyz[:, :2], axis=0).T)
+    s = 0.03  # σ of a step per metre of it: its variance grows by s² · mean step per metre driven
+    var = np.concatenate(([0.0], np.cumsum(s * s * steps * steps[steps > 0].mean())))
+    cov = np.zeros((len(t), 6, 6))
+    cov[:, 0, 0] = cov[:, 1, 1] = var
+    assert abs(sigma_per_m_from_covariance(poses, var) - s) < 1e-3
+    bag = write_bag(tmp_path / "c", BagKind.mcap, (t, poses), read_gps_csv(run_dir / "gps.csv"), covariances=cov)
+    args = ["fuse", "--map", "grid", "--bag", str(bag), "--odometry-topic", "/odom", "--gps-topic", "/gps/fix"]
+    assert main([*args, "--out", str(tmp_path / "a.tum")]) == 0
+    err = capsys.readouterr().err
+    assert "odometry_sigma_per_m = 0.03" in err
+    assert main([*args, "--no-bag-covariance", "--out", str(tmp_path / "b.tum")]) == 0
+    assert "odometry_sigma_per_m" not in capsys.readouterr().err
+    assert not np.array_equal(read_tum(tmp_path / "a.tum")[1], read_tum(tmp_path / "b.tum")[1])
