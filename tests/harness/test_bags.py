@@ -9,19 +9,14 @@ import pytest
 from mapfusion.bags import BagKind, read_bag, write_bag
 from mapfusion.formats import read_gps_csv, read_imu_csv, read_tum, tum_to_matrices
 from mapfusion.harness.cli import main
+from tests.helpers import simulated_grid_run
 
 pytestmark = pytest.mark.sumo
 
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    """A short SUMO drive on the grid map with GPS throughout."""
-    d = tmp_path_factory.mktemp("bagrun")
-    sc = d / "s.toml"
-    sc.write_text('name = "bag"\nmap = "grid"\nseed = 5\nduration_s = 150.0\nmin_route_m = 1000.0\n'
-                  '[gps]\nmode = "continuous"\n')
-    assert main(["simulate", str(sc), "--out", str(d / "run")]) == 0
-    return d / "run"
+    return simulated_grid_run(tmp_path_factory.mktemp("bagrun"), "bag", 5)
 
 
 def _bag_of(run, path, kind: BagKind, child_frame: str = "base_link"):

@@ -12,7 +12,7 @@ import pytest
 from typer.testing import CliRunner
 
 from mapfusion.harness.cli import app
-from tests.helpers import MAPS
+from tests.helpers import MAPS, simulated_grid_run
 
 runner = CliRunner()
 
@@ -110,13 +110,7 @@ def test_simulate_bad_input_exits_2(tmp_path, text, needle):
 @pytest.fixture(scope="module")
 def sim_run(tmp_path_factory):
     """A short simulated drive on the grid map with GPS throughout (so the engine initialises)."""
-    d = tmp_path_factory.mktemp("run")
-    sc = d / "s.toml"
-    sc.write_text('name = "f"\nmap = "grid"\nseed = 3\nduration_s = 150.0\nmin_route_m = 1000.0\n'
-                  '[gps]\nmode = "continuous"\n')
-    r = runner.invoke(app, ["simulate", str(sc), "--out", str(d / "run")])
-    assert r.exit_code == 0, r.output
-    return d / "run"
+    return simulated_grid_run(tmp_path_factory.mktemp("run"), "f", 3)
 
 
 @pytest.mark.sumo
