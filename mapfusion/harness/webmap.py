@@ -95,12 +95,19 @@ def _hover_points(gj: dict, run: Path) -> list[dict]:
     te, xe, _ = read_tum(run / "estimate_mapfusion.tum")
     prior_t = {round(f["properties"]["t_s"], 3) for f in gj["features"] if f["properties"]["layer"] == "map_prior"}
     ia, ib = associate(te, t)
+    odo_err: dict[float, float] = {}
+    if (run / "estimate_odometry.tum").exists():
+        to, xo, _ = read_tum(run / "estimate_odometry.tum")
+        ja, jb = associate(to, t)
+        odo_err = {round(float(to[a]), 3): float(np.hypot(*(xo[a, :2] - xy[b]))) for a, b in zip(ja, jb)}
     mf = next(f for f in gj["features"] if f["properties"]["layer"] == "mapfusion")["geometry"]["coordinates"]
     out = []
     for a, b in list(zip(ia, ib))[::HOVER_EVERY]:
         lon, lat = mf[a]
+        odo = odo_err.get(round(float(te[a]), 3))
         out.append({"lat": lat, "lon": lon, "t_s": round(float(te[a]), 2),
                     "error_m": round(float(np.hypot(*(xe[a, :2] - xy[b]))), 2),
+                    "odometry_error_m": None if odo is None else round(odo, 2),
                     "prior": round(float(te[a]), 3) in prior_t})
     return out
 
@@ -157,7 +164,9 @@ def write_html(run_dir: str | Path, out: str | Path, road=None) -> Path:
     hover = folium.FeatureGroup(name="poses (hover: time, error, prior)", show=True)
     for p in _hover_points(gj, run):
         folium.CircleMarker([p["lat"], p["lon"]], radius=2, color=COLOURS["mapfusion"], fill=True, opacity=0.6,
-                            tooltip=f"t = {p['t_s']} s, error {p['error_m']} m"
+                            tooltip=f"t = {p['t_s']} s: Map-Fusion error {p['error_m']} m"
+                                    + ("" if p["odometry_error_m"] is None else
+                                       f", odometry (no map) error {p['odometry_error_m']} m")
                                     + (", map prior applied" if p["prior"] else "")).add_to(hover)
     hover.add_to(m)
     folium.LayerControl(collapsed=False).add_to(m)

@@ -89,6 +89,7 @@ def test_the_html_map_is_self_contained(run, tmp_path):
     text = page.read_text()
     assert not needs_network(page)  # Leaflet inlined: the page works offline
     assert "roads (this test bed" in text and "Map-Fusion" in text and "map prior" in text
+    assert "Map-Fusion error" in text and "odometry (no map) error" in text  # hover details per pose
 
 
 CHROMIUM = next((p for p in ("/usr/bin/chromium", "/usr/bin/chromium-browser") if __import__("os").path.exists(p)), None)
