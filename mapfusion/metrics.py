@@ -176,3 +176,52 @@ def rpe_per_100m(
 
     e = local(est, np.asarray(estimate_yaw_rad, float)) - local(gt, np.asarray(truth_yaw_rad, float))
     return float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
+
+
+#: KITTI's odometry benchmark: segment lengths (m) and the frame step between segment starts.
+KITTI_SEGMENTS_M = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
+KITTI_STEP_FRAMES = 10
+
+
+@dataclass(frozen=True)
+class KittiError:
+    """KITTI's odometry metric: mean translational error (%) and rotational error (deg per 100 m)
+    over every segment of 100–800 m starting at every 10th frame; None where the drive has none."""
+
+    t_err_percent: float | None
+    r_err_deg_per_100m: float | None
+    segments: int
+
+
+def kitti_errors(truth_poses: np.ndarray, estimate_poses: np.ndarray, scale: float = 1.0) -> KittiError:
+    """KITTI's t_err and r_err (as its development kit computes them) of time-associated (N, 4, 4)
+    poses: for a segment from frame i to the first frame j more than L metres further along the
+    true path, the error of the estimated motion i → j against the true one, its translation over
+    L and its rotation angle over L, averaged over all segments. ``scale`` multiplies the
+    estimate's translations first (KITTI's monocular results are scored after one fitted scale)."""
+    gt = np.asarray(truth_poses, dtype=float)
+    est = np.array(estimate_poses, dtype=float)
+    _check_pair(gt[:, :3, 3], est[:, :3, 3], "kitti", min_n=2)
+    est[:, :3, 3] *= scale
+    dist = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))))
+    inv_gt, inv_est = np.linalg.inv(gt), np.linalg.inv(est)
+    starts = np.arange(0, len(gt), KITTI_STEP_FRAMES)
+    t_errs, r_errs = [], []
+    for seg in KITTI_SEGMENTS_M:  # the development kit's loop, a segment length at a time over all starts
+        ends = np.searchsorted(dist, dist[starts] + seg, side="right")
+        ok = ends < len(gt)
+        i, j = starts[ok], ends[ok]
+        err = np.linalg.inv(inv_est[i] @ est[j]) @ (inv_gt[i] @ gt[j])
+        cos = np.clip(0.5 * (np.trace(err[:, :3, :3], axis1=1, axis2=2) - 1.0), -1.0, 1.0)
+        t_errs.append(np.linalg.norm(err[:, :3, 3], axis=1) / seg)
+        r_errs.append(np.arccos(cos) / seg)
+    t_all, r_all = np.concatenate(t_errs), np.concatenate(r_errs)
+    if not len(t_all):
+        return KittiError(None, None, 0)
+    return KittiError(100.0 * float(t_all.mean()), 100.0 * float(np.degrees(r_all.mean())), len(t_all))
+
+
+def global_scale(truth_xyz: np.ndarray, estimate_xyz: np.ndarray) -> float:
+    """The one scale that best maps the estimate's positions onto the truth's (Umeyama with scale)."""
+    _, _, s = umeyama(np.asarray(estimate_xyz, float), np.asarray(truth_xyz, float), with_scale=True)
+    return float(s)

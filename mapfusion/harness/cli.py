@@ -571,12 +571,15 @@ def evaluate(
     as_json: Annotated[bool, typer.Option("--json", help="Print the metrics as JSON.")] = False,
     max_dt_s: Annotated[float, typer.Option(help="Poses match when their times differ by at most this, seconds.", min=1e-6, max=10.0)] = 0.02,
     delocalization_m: Annotated[float, typer.Option(help="ATE above this counts as de-localised, metres.", min=0.01, max=1e6)] = 20.0,
+    scale: Annotated[bool, typer.Option("--scale", help="KITTI's t_err / r_err after one fitted global scale "
+                                        "(as KITTI scores monocular odometry).")] = False,
 ) -> None:
-    """ATE (the paper's), online error (no alignment; lateral and longitudinal parts) and RPE per 100 m."""
+    """ATE (the paper's), online error (no alignment; lateral and longitudinal parts), RPE per 100 m and
+    KITTI's odometry metric (t_err %, r_err deg/100 m over 100–800 m segments)."""
     from .pipeline import evaluate_files
 
     try:
-        out = evaluate_files(truth, estimate, max_dt_s, delocalization_m)
+        out = evaluate_files(truth, estimate, max_dt_s, delocalization_m, fit_scale=scale)
     except InputError as exc:
         _fail(str(exc))
     if as_json:

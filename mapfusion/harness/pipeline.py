@@ -310,11 +310,14 @@ def write_estimates(res: FusionResult, out: Path, smoothed: Path | None = None, 
     return n
 
 
-def evaluate_files(truth: Path, estimate: Path, max_dt_s: float = 0.02, delocalization_m: float = 20.0) -> dict:
-    """``mapfusion evaluate``: ATE, online error (lateral, longitudinal) and RPE per 100 m of a TUM
-    estimate against a TUM truth (InputError / FormatError on bad input)."""
+def evaluate_files(truth: Path, estimate: Path, max_dt_s: float = 0.02, delocalization_m: float = 20.0,
+                   fit_scale: bool = False) -> dict:
+    """``mapfusion evaluate``: ATE, online error (lateral, longitudinal), RPE per 100 m and KITTI's
+    t_err / r_err of a TUM estimate against a TUM truth (InputError / FormatError on bad input);
+    ``fit_scale``: KITTI's errors after one fitted global scale (a monocular odometry's)."""
     from mapfusion.errors import InputError
-    from mapfusion.formats import quaternion_to_yaw, read_tum
+    from mapfusion.formats import quaternion_to_yaw, read_tum, tum_to_matrices
+    from mapfusion.metrics import global_scale, kitti_errors
 
     tt, xt, qt = read_tum(truth)
     te, xe, qe = read_tum(estimate)
@@ -325,9 +328,13 @@ def evaluate_files(truth: Path, estimate: Path, max_dt_s: float = 0.02, delocali
     yt, ye = quaternion_to_yaw(qt[ib]), quaternion_to_yaw(qe[ia])
     on = online_error(xt[ib], yt, xe[ia])
     rpe = rpe_per_100m(xt[ib], yt, xe[ia], ye)
+    scale = global_scale(xt[ib], xe[ia]) if fit_scale else 1.0
+    k = kitti_errors(tum_to_matrices(xt[ib], qt[ib]), tum_to_matrices(xe[ia], qe[ia]), scale)
     return {"frames": int(len(ia)), "ate_m": a, "delocalized": delocalized(a, delocalization_m),
             "online_rmse_m": on.rmse_m, "online_max_m": on.max_m, "online_lateral_rmse_m": on.lateral_rmse_m,
-            "online_longitudinal_rmse_m": on.longitudinal_rmse_m, "rpe_per_100m_m": rpe}
+            "online_longitudinal_rmse_m": on.longitudinal_rmse_m, "rpe_per_100m_m": rpe,
+            "kitti_t_err_percent": k.t_err_percent, "kitti_r_err_deg_per_100m": k.r_err_deg_per_100m,
+            "kitti_segments": k.segments, "kitti_scale": scale}
 
 
 @dataclass(frozen=True)

@@ -414,3 +414,23 @@ def test_fuse_refuses_a_bad_output_before_the_work(sim_run, tmp_path, case, need
     assert needle in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert {p: p.read_bytes() for p in (odo, gps)} == before
     assert not (work / "e.tum").exists()
+
+
+def test_evaluate_reports_kittis_metric_with_and_without_a_fitted_scale(tmp_path, capsys):
+    from mapfusion.formats import write_tum, yaw_to_quaternion
+    from mapfusion.harness.cli import main
+
+    n = 1200  # 1,199 m straight, one frame a metre
+    t = np.arange(n) * 0.1
+    xyz = np.column_stack([np.arange(n, dtype=float), np.zeros(n), np.zeros(n)])
+    q = yaw_to_quaternion(np.zeros(n))
+    write_tum(tmp_path / "truth.tum", t, xyz, q)
+    write_tum(tmp_path / "est.tum", t, xyz * 1.02, q)
+    out = []
+    for extra in ([], ["--scale"]):
+        assert main(["evaluate", "--truth", str(tmp_path / "truth.tum"), "--estimate", str(tmp_path / "est.tum"),
+                     "--json", *extra]) == 0
+        out.append(json.loads(capsys.readouterr().out))
+    assert 2.0 <= out[0]["kitti_t_err_percent"] <= 2.0 * 1.01 and out[0]["kitti_scale"] == 1.0
+    assert out[1]["kitti_t_err_percent"] < 1e-6 and abs(out[1]["kitti_scale"] - 1 / 1.02) < 1e-9
+    assert out[0]["kitti_segments"] > 0 and out[0]["kitti_r_err_deg_per_100m"] < 1e-6

@@ -232,3 +232,16 @@ def test_a_mismatched_import_is_refused(case, needle, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and needle in err[0], err
     assert not (tmp_path / "r").exists()
+
+
+@needs_data
+@pytest.mark.parametrize("seq,name,t_err,r_err", [("00", "cvo_stereo_00", 3.16, 1.20), ("05", "cvo_stereo_05", 2.99, 1.47),
+                                                  ("07", "cvo_stereo_07", 2.33, 1.76)])
+def test_kitti_errors_match_the_issues_measurement(seq, name, t_err, r_err):
+    """Issue 22's table (measured with KITTI's development kit's definition) on the real stereo VO."""
+    from mapfusion.formats import read_kitti_poses
+    from mapfusion.metrics import kitti_errors
+
+    k = kitti_errors(read_kitti_poses(Path(DATA) / "kitti" / seq / "poses.txt"),
+                     read_kitti_poses(Path(DATA) / "vo" / f"{name}.txt"))
+    assert abs(k.t_err_percent - t_err) < 0.01 and abs(k.r_err_deg_per_100m - r_err) < 0.01

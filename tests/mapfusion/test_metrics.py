@@ -137,3 +137,46 @@ def test_continuations_are_splits_not_junctions(tmp_path):
     cont = road.continuations()
     assert cont.get(1) == {2} and cont.get(2) == {1}
     assert 3 not in cont.get(2, set())
+
+
+def _path_poses(n: int, step_m: float, yaw_rate: float) -> np.ndarray:
+    yaw = np.arange(n) * yaw_rate
+    p = np.tile(np.eye(4), (n, 1, 1))
+    p[:, 0, 0], p[:, 0, 1], p[:, 1, 0], p[:, 1, 1] = np.cos(yaw), -np.sin(yaw), np.sin(yaw), np.cos(yaw)
+    p[:, 0, 3] = np.concatenate(([0.0], np.cumsum(step_m * np.cos(yaw[:-1]))))
+    p[:, 1, 3] = np.concatenate(([0.0], np.cumsum(step_m * np.sin(yaw[:-1]))))
+    return p
+
+
+@given(step=st.floats(0.5, 2.0), eps=st.floats(-0.05, 0.05))
+def test_kitti_errors_of_a_scaled_trajectory(step, eps):
+    """KITTI's t_err: a trajectory scaled by 1 + ε is off by |ε| of every segment's driven length,
+    which the development kit divides by the nominal length L (the segment ends at the first frame
+    beyond L: at most one step more), so 100·|ε| ≤ t_err ≤ 100·|ε|·(1 + step/100); its rotations
+    are exact; fitting one global scale first removes it; a perfect estimate scores 0. (On a straight
+    road: on a bend the error is ε times the chord, shorter than the distance driven.)"""
+    from mapfusion.metrics import global_scale, kitti_errors
+
+    gt = _path_poses(1200, step, 0.0)
+    est = gt.copy()
+    est[:, :3, 3] *= 1.0 + eps
+    k = kitti_errors(gt, est)
+    assert k.segments > 0
+    assert 100.0 * abs(eps) - 1e-9 <= k.t_err_percent <= 100.0 * abs(eps) * (1.0 + step / 100.0) + 1e-9
+    assert k.r_err_deg_per_100m < 1e-6
+    assert kitti_errors(gt, gt).t_err_percent < 1e-9
+    s = global_scale(gt[:, :3, 3], est[:, :3, 3])
+    assert kitti_errors(gt, est, s).t_err_percent < 1e-6
+
+
+@given(drift_deg_per_100m=st.floats(0.1, 5.0))
+def test_kitti_rotation_error_of_a_yaw_drift(drift_deg_per_100m):
+    """An estimate whose heading drifts by d degrees per 100 m driven has r_err = d deg/100 m (up to
+    the one step a segment may run past its nominal length)."""
+    from mapfusion.metrics import kitti_errors
+
+    step = 1.0
+    gt = _path_poses(1000, step, 0.0)
+    est = _path_poses(1000, step, np.radians(drift_deg_per_100m) / 100.0 * step)
+    k = kitti_errors(gt, est)
+    assert drift_deg_per_100m * (1 - 1e-6) <= k.r_err_deg_per_100m <= drift_deg_per_100m * (1.0 + step / 100.0) + 1e-9
