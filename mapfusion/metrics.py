@@ -225,3 +225,85 @@ def global_scale(truth_xyz: np.ndarray, estimate_xyz: np.ndarray) -> float:
     """The one scale that best maps the estimate's positions onto the truth's (Umeyama with scale)."""
     _, _, s = umeyama(np.asarray(estimate_xyz, float), np.asarray(truth_xyz, float), with_scale=True)
     return float(s)
+
+
+@dataclass(frozen=True)
+class OdometryStats:
+    """What an odometry's error is made of, against the truth of the same drive (issue 22: the
+    statistics a simulated odometry is fitted on). Lengths in metres along the true path."""
+
+    driven_m: float
+    global_scale: float  # the one scale that maps the odometry onto the truth best
+    kitti_t_err_percent: float | None  # after that scale
+    kitti_r_err_deg_per_100m: float | None
+    yaw_drift_deg_per_100m: float  # slope of the heading error over the distance driven
+    scale_window_sigma: float  # σ of the scale fitted per 100 m window, relative to the global one
+    scale_rw_per_sqrt_m: float  # σ of the change between consecutive windows / √100 m
+    start_scale_bias: float | None  # the scale over the first 30 s relative to the global one, minus 1
+    lateral_rmse_m: float  # across the true heading, after a similarity fit of the whole drive
+    lateral_power_short: float  # share of the lateral error's variance at wavelengths under 50 m
+    lateral_power_long: float  # ... and over 500 m
+    jumps_per_km: float  # steps off by more than 10 robust σ of the step errors (and JUMP_MIN_M)
+    step_error_autocorrelation: tuple[float, float, float]  # of the step-length errors at lags 1, 10, 100
+
+
+#: A step error counts as a jump only beyond this too: a re-initialisation moves metres, not millimetres.
+JUMP_MIN_M = 1.0
+
+
+def odometry_stats(t_s: np.ndarray, truth_poses: np.ndarray, odometry_poses: np.ndarray) -> OdometryStats:
+    """The statistics of :class:`OdometryStats` for time-associated (N, 4, 4) poses."""
+    gt = np.asarray(truth_poses, dtype=float)
+    od = np.asarray(odometry_poses, dtype=float)
+    _check_pair(gt[:, :3, 3], od[:, :3, 3], "odometry stats", min_n=20)
+    gxy, oxy = gt[:, :2, 3], od[:, :2, 3]
+    g_step = np.linalg.norm(np.diff(gxy, axis=0), axis=1)
+    o_step = np.linalg.norm(np.diff(oxy, axis=0), axis=1)
+    dist = np.concatenate(([0.0], np.cumsum(g_step)))
+    scale = global_scale(gt[:, :3, 3], od[:, :3, 3])
+    k = kitti_errors(gt, od, scale)
+    # heading error over distance
+    yaw_g = np.unwrap(np.arctan2(gt[:, 1, 0], gt[:, 0, 0]))
+    yaw_o = np.unwrap(np.arctan2(od[:, 1, 0], od[:, 0, 0]))
+    dyaw = (yaw_o - yaw_o[0]) - (yaw_g - yaw_g[0])
+    drift = float(np.polyfit(dist, np.degrees(dyaw), 1)[0] * 100.0) if dist[-1] > 0 else 0.0
+    # scale per 100 m window
+    edges = np.searchsorted(dist, np.arange(0.0, dist[-1], 100.0))
+    ratios = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        g = g_step[a:b].sum()
+        if g > 50.0:
+            ratios.append(scale * o_step[a:b].sum() / g)
+    r = np.asarray(ratios)
+    window_sigma = float(r.std()) if len(r) > 1 else 0.0
+    rw = float(np.std(np.diff(r)) / np.sqrt(2.0) / 10.0) if len(r) > 2 else 0.0
+    first = np.searchsorted(t_s, t_s[0] + 30.0)
+    start_g = g_step[:first].sum()
+    start_bias = float(scale * o_step[:first].sum() / start_g - 1.0) if start_g > 20.0 else None
+    # lateral error after a similarity fit of the whole drive, resampled every metre
+    rot, tr, s = umeyama(oxy, gxy, with_scale=True)
+    aligned = s * oxy @ rot.T + tr
+    heading = np.column_stack([np.cos(yaw_g), np.sin(yaw_g)])
+    e = aligned - gxy
+    lateral = heading[:, 0] * e[:, 1] - heading[:, 1] * e[:, 0]
+    grid = np.arange(0.0, dist[-1], 1.0)
+    lat_1m = np.interp(grid, dist, lateral) if len(grid) > 8 else lateral
+    spec = np.abs(np.fft.rfft(lat_1m - lat_1m.mean())) ** 2
+    freq = np.fft.rfftfreq(len(lat_1m), d=1.0)
+    total = spec[1:].sum() or 1.0
+    short = float(spec[1:][freq[1:] > 1 / 50.0].sum() / total)
+    long = float(spec[1:][freq[1:] < 1 / 500.0].sum() / total)
+    # jumps and the step errors' memory
+    step_err = scale * o_step - g_step
+    robust_sigma = float(np.median(np.abs(step_err - np.median(step_err)))) * 1.4826
+    jumps = int(np.sum(np.abs(step_err - np.median(step_err)) > max(10.0 * robust_sigma, JUMP_MIN_M)))
+
+    def acf(lag: int) -> float:
+        x = step_err - step_err.mean()
+        if len(x) <= lag or not np.any(x):
+            return 0.0
+        return float(np.dot(x[:-lag], x[lag:]) / np.dot(x, x))
+
+    return OdometryStats(float(dist[-1]), scale, k.t_err_percent, k.r_err_deg_per_100m, drift, window_sigma, rw,
+                         start_bias, float(np.sqrt(np.mean(lateral**2))), short, long,
+                         jumps / max(dist[-1] / 1000.0, 1e-9), (acf(1), acf(10), acf(100)))

@@ -603,6 +603,46 @@ def _check_scheduler(scheduler: str | None) -> None:
             _fail(str(exc))
 
 
+@app.command("odometry-stats")
+def odometry_stats_cmd(
+    truth: Annotated[Path, typer.Option("--truth", help="Ground truth poses (TUM, or KITTI with --times).")],
+    odometry: Annotated[Path, typer.Option("--odometry", help="The odometry's poses, same format and frame.")],
+    fmt: Annotated[str, typer.Option("--format", help="tum | kitti")] = "tum",
+    times: Annotated[Optional[Path], typer.Option("--times", help="KITTI times.txt (with --format kitti).")] = None,
+    frame: Annotated[str, typer.Option("--frame", help="body | camera (KITTI's poses are camera)")] = "body",
+    as_json: Annotated[bool, typer.Option("--json", help="Print the statistics as JSON.")] = False,
+) -> None:
+    """What an odometry's error is made of against the truth of the same drive: KITTI's t_err and
+    r_err after a fitted scale, yaw drift, scale per 100 m window and its random walk, the start's
+    scale bias, lateral error and its spectrum, jumps, the step errors' autocorrelation."""
+    from mapfusion.metrics import associate, odometry_stats
+    from mapfusion.replay import OdometryFormat, OdometryFrame, read_odometry
+
+    try:
+        try:
+            f, fr = OdometryFormat(fmt), OdometryFrame(frame)
+        except ValueError as exc:
+            raise InputError(f"{exc}; --format is tum or kitti, --frame is body or camera") from None
+        tt, gt = read_odometry(truth, f, times, fr)
+        to, od = read_odometry(odometry, f, times, fr)
+        ia, ib = associate(to, tt)
+        if len(ia) < 20:
+            raise InputError(f"{odometry}: only {len(ia)} poses match {truth} in time")
+        stats = odometry_stats(tt[ib], gt[ib], od[ia])
+    except InputError as exc:
+        _fail(str(exc))
+    d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in stats.__dict__.items()}
+    if as_json:
+        _print_json(d, indent=2)
+        return
+    t = Table(title=f"{odometry.name} against {truth.name}")
+    t.add_column("statistic")
+    t.add_column("value", justify="right")
+    for k, v in d.items():
+        t.add_row(k, "–" if v is None else ", ".join(f"{x:.3f}" for x in v) if isinstance(v, list) else f"{v:.4g}")
+    console.print(t)
+
+
 def _default_workers() -> int:
     return max(1, os.cpu_count() or 1)
 

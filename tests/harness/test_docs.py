@@ -23,7 +23,7 @@ def test_configuration_page_is_current():
 def _named_commands() -> list[tuple[str, ...]]:
     text = (REPO / "README.md").read_text() + "".join(p.read_text() for p in (REPO / "docs").glob("*.md"))
     found = set()
-    for a, b in re.findall(r"`mapfusion ([a-z]+)(?: ([a-z]+))?", text):
+    for a, b in re.findall(r"`mapfusion ([a-z][a-z-]*)(?: ([a-z][a-z-]*))?", text):
         found.add((a, b) if b else (a,))
     return sorted(found)
 

@@ -180,3 +180,25 @@ def test_kitti_rotation_error_of_a_yaw_drift(drift_deg_per_100m):
     est = _path_poses(1000, step, np.radians(drift_deg_per_100m) / 100.0 * step)
     k = kitti_errors(gt, est)
     assert drift_deg_per_100m * (1 - 1e-6) <= k.r_err_deg_per_100m <= drift_deg_per_100m * (1.0 + step / 100.0) + 1e-9
+
+
+@given(c=st.floats(0.5, 30.0), drift=st.floats(-3.0, 3.0))
+def test_odometry_stats_recover_a_scale_a_drift_and_a_jump(c, drift):
+    """An odometry in units of 1/c metres with a heading drift of d deg/100 m and one 30 m jump:
+    its global scale is c, its yaw drift d, one jump in its 1.2 km; the truth against itself is clean."""
+    from mapfusion.metrics import odometry_stats
+
+    n, step = 1200, 1.0
+    t = np.arange(n) * 0.1
+    gt = _path_poses(n, step, 0.0)
+    clean = odometry_stats(t, gt, gt)
+    assert abs(clean.global_scale - 1) < 1e-9 and clean.kitti_t_err_percent < 1e-9 and clean.jumps_per_km == 0
+    assert abs(clean.yaw_drift_deg_per_100m) < 1e-9 and clean.lateral_rmse_m < 1e-9
+    od = _path_poses(n, step, np.radians(drift) / 100.0 * step)
+    od[600:, 0, 3] += 30.0  # a re-initialisation's jump along the way
+    od[:, :3, 3] /= c
+    s = odometry_stats(t, gt, od)
+    assert abs(s.yaw_drift_deg_per_100m - drift) < 1e-6 + 0.02 * abs(drift)
+    assert s.jumps_per_km * s.driven_m / 1000.0 == pytest.approx(1.0)
+    if abs(drift) < 0.5:  # on a nearly straight odometry the jump is the only scale error
+        assert abs(s.global_scale / c - 1) < 0.05

@@ -284,6 +284,12 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
     ("export-not-a-run", ["export", "{d}", "--geojson", "{d}/x.geojson"], {}, ["not a run directory"]),
     ("export-nothing", ["export", "{d}"], {}, ["--geojson"]),
     ("export-out-directory", ["export", "{d}", "--gpx", "{d}/od"], {"od/x": ""}, ["--gpx"]),
+    ("odostats-missing", ["odometry-stats", "--truth", "{d}/none.tum", "--odometry", "{in}/odometry.tum"], {},
+     ["none.tum"]),
+    ("odostats-format", ["odometry-stats", "--truth", "{in}/truth.tum", "--odometry", "{in}/odometry.tum",
+                         "--format", "csv"], {}, ["csv"]),
+    ("odostats-no-overlap", ["odometry-stats", "--truth", "{in}/truth.tum", "--odometry", "{d}/o.tum"],
+     {"o.tum": _tum([f"{1000 + 0.1 * i:.1f} {i} 0 0 0 0 0 1" for i in range(30)])}, ["o.tum"]),
     ("demo-out-file", ["demo", "--out", "{d}/r"], {"r": "a file"}, ["--out"]),
     # ---- the command line itself
     ("unknown-command", ["fly"], {}, ["fly"]),
