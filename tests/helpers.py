@@ -118,14 +118,3 @@ def synthetic_truth(kind: str = "straight", n: int = 600, dt_s: float = 0.1, spe
         flag[denied[0]:denied[1] + 1] = True
     return TruthTrack(t, x, y, np.zeros(n), (yaw + np.pi) % (2 * np.pi) - np.pi, flag.copy(), flag.copy())
 
-
-def simulated_grid_run(d: Path, name: str, seed: int, extra_toml: str = "") -> Path:
-    """A 150 s SUMO drive on the bundled grid map with GPS throughout (so the engine initialises),
-    simulated into ``d/run`` (``extra_toml`` adds tables); returns the run directory."""
-    from mapfusion.harness.cli import main
-
-    sc = d / f"{name}.toml"
-    sc.write_text(f'name = "{name}"\nmap = "grid"\nseed = {seed}\nduration_s = 150.0\nmin_route_m = 1000.0\n'
-                  '[gps]\nmode = "continuous"\n' + extra_toml)
-    assert main(["simulate", str(sc), "--out", str(d / "run")]) == 0
-    return d / "run"

@@ -9,7 +9,7 @@ import pytest
 from mapfusion.bags import BagKind, read_bag, write_bag
 from mapfusion.formats import read_gps_csv, read_imu_csv, read_tum, tum_to_matrices
 from mapfusion.harness.cli import main
-from tests.helpers import simulated_grid_run
+from tests.harness.sim_helpers import simulated_grid_run
 
 pytestmark = pytest.mark.sumo
 

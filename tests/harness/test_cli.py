@@ -12,7 +12,8 @@ import pytest
 from typer.testing import CliRunner
 
 from mapfusion.harness.cli import app
-from tests.helpers import MAPS, simulated_grid_run
+from tests.helpers import MAPS
+from tests.harness.sim_helpers import simulated_grid_run
 
 runner = CliRunner()
 
