@@ -582,15 +582,7 @@ def evaluate(
         out = evaluate_files(truth, estimate, max_dt_s, delocalization_m, fit_scale=scale)
     except InputError as exc:
         _fail(str(exc))
-    if as_json:
-        _print_json(out, indent=2)
-        return
-    t = Table(title=f"{estimate.name} against {truth.name}")
-    t.add_column("metric")
-    t.add_column("value", justify="right")
-    for k, v in out.items():
-        t.add_row(k, "–" if v is None else (f"{v:.3f}" if isinstance(v, float) else str(v)))
-    console.print(t)
+    _print_figures(out, as_json, f"{estimate.name} against {truth.name}", "metric")
 
 
 def _check_scheduler(scheduler: str | None) -> None:
@@ -632,14 +624,21 @@ def odometry_stats_cmd(
     except InputError as exc:
         _fail(str(exc))
     d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in stats.__dict__.items()}
+    _print_figures(d, as_json, f"{odometry.name} against {truth.name}", "statistic")
+
+
+def _print_figures(figures: dict, as_json: bool, title: str, what: str) -> None:
+    """Named figures as strict JSON, or as a two-column table (None as –, lists joined)."""
     if as_json:
-        _print_json(d, indent=2)
+        _print_json(figures, indent=2)
         return
-    t = Table(title=f"{odometry.name} against {truth.name}")
-    t.add_column("statistic")
+    t = Table(title=title)
+    t.add_column(what)
     t.add_column("value", justify="right")
-    for k, v in d.items():
-        t.add_row(k, "–" if v is None else ", ".join(f"{x:.3f}" for x in v) if isinstance(v, list) else f"{v:.4g}")
+    for k, v in figures.items():
+        text = ("–" if v is None else ", ".join(f"{x:.3f}" for x in v) if isinstance(v, list)
+                else f"{v:.4g}" if isinstance(v, float) else str(v))
+        t.add_row(k, text)
     console.print(t)
 
 
