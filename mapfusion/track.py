@@ -65,14 +65,17 @@ class History(Generic[T]):
         return self.first + len(self._items)
 
     def _at(self, k: int) -> int:
-        if k < 0:
-            k += len(self)
-        if not self.first <= k < len(self):
+        # negative indices count from the end, which the held list shares; it raises past its start
+        i = k if k < 0 else k - self.first
+        if i < 0 <= k:
             raise IndexError(f"frame {k} is not held (frames {self.first}..{len(self) - 1})")
-        return k - self.first
+        return i
 
-    def __getitem__(self, k: int) -> T:
-        return self._items[self._at(k)]
+    def __getitem__(self, k: int) -> T:  # on the engine's per-frame path: kept to two comparisons
+        i = k if k < 0 else k - self.first
+        if i < 0 <= k:
+            raise IndexError(f"frame {k} is not held (frames {self.first}..{len(self) - 1})")
+        return self._items[i]
 
     def __setitem__(self, k: int, value: T) -> None:
         self._items[self._at(k)] = value
@@ -215,9 +218,11 @@ class JumpGuard:
             return rel, False
         dt, self._t = max(t - self._t, 1e-3), t
         speed = float(np.linalg.norm(rel.translation())) * (scale or 1.0) / dt
-        seen = len(self._speeds) >= self.MIN_HISTORY  # a step is judged against the odometry's own speeds
-        typical = float(np.median(self._speeds)) if seen else math.inf
-        impossible = speed > self.max_speed_mps and speed > self.RATIO * max(typical, self.MIN_TYPICAL_MPS)
+        impossible = False
+        if speed > self.max_speed_mps:  # rare: only then the median of the odometry's own speeds is needed
+            seen = len(self._speeds) >= self.MIN_HISTORY
+            typical = float(np.median(self._speeds)) if seen else math.inf
+            impossible = speed > self.RATIO * max(typical, self.MIN_TYPICAL_MPS)
         if impossible and self._last is not None:
             last_dt, last = self._last
             return gtsam.Pose3(last.rotation(), gtsam.Point3(*(last.translation() * (dt / last_dt)))), True
