@@ -38,6 +38,11 @@ class BagKind(str, enum.Enum):
     sqlite3 = "sqlite3"
     ros1 = "ros1"
 
+    @classmethod
+    def for_path(cls, path: str | Path) -> BagKind:
+        """What a bag written to ``path`` is: ``NAME.bag`` ROS 1, any other name a ROS 2 MCAP folder."""
+        return cls.ros1 if Path(path).suffix == ".bag" else cls.mcap
+
 
 @dataclass
 class BagData:

@@ -30,22 +30,7 @@ MAX_COORDINATE_M = 1.0e7
 def read_text(path: str | Path, what: str = "file", error: type[InputError] = FormatError) -> str:
     """A text file's contents, strictly UTF-8: a missing file, a directory, an unreadable or a
     binary/non-UTF-8 file raises ``error`` (a :class:`FormatError` by default) naming it."""
-    p = Path(path)
-    if not p.exists():
-        raise error(f"{p}: no such {what}")
-    if p.is_dir():
-        raise error(f"{p}: is a directory, not a {what}")
-    try:
-        data = p.read_bytes()
-    except OSError as exc:
-        raise error(f"{p}: cannot read ({exc.strerror})") from None
-    if b"\0" in data:
-        raise error(f"{p}: a binary file, not a {what}")
-    try:
-        return data.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = data[: exc.start].count(b"\n") + 1
-        raise error(f"{p}:{line}: not UTF-8 text (byte {exc.start}), not a {what}") from None
+    return "".join(line for _, line in _text_lines(path, what, error))
 
 
 def read_toml(path: str | Path, what: str = "TOML file", error: type[InputError] = FormatError) -> dict:
@@ -123,25 +108,25 @@ class TumWriter:
         self._tmp.unlink(missing_ok=True)
 
 
-def _text_lines(path: str | Path, what: str):
+def _text_lines(path: str | Path, what: str, error: type[InputError] = FormatError):
     """A text file's lines, streamed and strictly UTF-8: (line number, line); a missing file, a
-    directory, a binary or non-UTF-8 file raises :class:`FormatError` naming it (and the line)."""
+    directory, a binary or non-UTF-8 file raises ``error`` naming it (and the line)."""
     p = Path(path)
     if not p.exists():
-        raise FormatError(f"{p}: no such file")
+        raise error(f"{p}: no such {what}")
     if p.is_dir():
-        raise FormatError(f"{p}: is a directory, not a {what}")
+        raise error(f"{p}: is a directory, not a {what}")
     lineno = 0
     try:
         with open(p, encoding="utf-8", errors="strict") as f:
             for lineno, line in enumerate(f, start=1):
                 if "\0" in line:
-                    raise FormatError(f"{p}:{lineno}: a binary file, not a {what}")
+                    raise error(f"{p}:{lineno}: a binary file, not a {what}")
                 yield lineno, line
     except UnicodeDecodeError:
-        raise FormatError(f"{p}:{lineno + 1}: not UTF-8 text, not a {what}") from None
+        raise error(f"{p}:{lineno + 1}: not UTF-8 text, not a {what}") from None
     except OSError as exc:
-        raise FormatError(f"{p}: cannot read ({exc.strerror})") from None
+        raise error(f"{p}: cannot read ({exc.strerror})") from None
 
 
 def numeric_rows(path: str | Path, columns: int | None, what: str, increasing: bool = True, comma_ok: bool = False):
@@ -327,11 +312,10 @@ def read_gps_csv(path: str | Path) -> GpsFixes:
     p = Path(path)
     rows = []
     for lineno, vals in _csv_rows(p, GPS_HEADER, {"alt", "sigma_m"}):
-        sigma = vals[4]
-        # an empty σ means "the configured one"; a σ given must be one (never silently replaced)
-        lat, lon = vals[1], vals[2]
+        lat, lon, sigma = vals[1], vals[2], vals[4]
         if (math.isfinite(lat) and not -90.0 <= lat <= 90.0) or (math.isfinite(lon) and not -180.0 <= lon <= 180.0):
             raise FormatError(f"{p}:{lineno}: lat must be within ±90° and lon within ±180°, got {lat:g}, {lon:g}")
+        # an empty σ means "the configured one"; a σ given must be one (never silently replaced)
         if not math.isnan(sigma) and not 0.0 < sigma <= MAX_GPS_SIGMA_M:
             raise FormatError(f"{p}:{lineno}: sigma_m must be > 0 and at most {MAX_GPS_SIGMA_M:g} m, got {sigma:g} "
                               "(leave it empty for the configured σ)")

@@ -152,11 +152,14 @@ def make_engine(road: RoadMap, t_odo: np.ndarray, gps: GpsFixes | None, cfg: Fus
 
 
 def fuse_streaming(road: RoadMap, path: str | Path, fmt: OdometryFormat, times: str | Path | None,
-                   frame: OdometryFrame, gps: GpsFixes | None, cfg: FusionConfig, on_final, progress=None) -> MapFusion:
+                   frame: OdometryFrame, gps: GpsFixes | None, cfg: FusionConfig, on_final, progress=None,
+                   t_all: np.ndarray | None = None) -> MapFusion:
     """The engine over an odometry file of any length, in flat memory: the file is read through
-    once to check it (and for its rate), then fed a chunk at a time; each frame goes to
-    ``on_final(t, online, smoothed)`` once final (see :mod:`mapfusion.stream`). Returns the engine."""
-    t_all = odometry_times(path, fmt, times)
+    once to check it (and for its rate; ``t_all``: that pass's times, when the caller made it),
+    then fed a chunk at a time; each frame goes to ``on_final(t, online, smoothed)`` once final
+    (see :mod:`mapfusion.stream`). Returns the engine."""
+    if t_all is None:
+        t_all = odometry_times(path, fmt, times)
     if len(t_all) < 2:
         raise FormatError("odometry: need at least two frames")
     eng = make_engine(road, t_all, gps, cfg, on_final)

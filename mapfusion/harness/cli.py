@@ -491,10 +491,14 @@ def fuse(
                 eng, n = _fuse_files_with_bag(inputs, cfg, out, smoothed, out_bag, no_map, bar.update)
     except InputError as exc:
         _fail(str(exc))
+    _require_initialised(eng)
+    _fuse_summary(eng, n, out)
+
+
+def _require_initialised(eng) -> None:
     if not eng.initialised:
         _fail("the engine never initialised: it needs GPS fixes while the vehicle moves "
               f"(got {eng.counters.gps_before_init} fixes, {eng.scale_samples} scale samples)")
-    _fuse_summary(eng, n, out)
 
 
 def _fuse_files_with_bag(inputs, cfg, out: Path, smoothed, out_bag: Path, no_map: bool, progress):
@@ -506,7 +510,7 @@ def _fuse_files_with_bag(inputs, cfg, out: Path, smoothed, out_bag: Path, no_map
     res = fuse_recorded(inputs, cfg, progress=progress, on_frame=lambda e: sigmas.append(e.position_sigma_m))
     if res.engine.initialised:
         n = write_estimates(res, out, smoothed, f" ({'no map' if no_map else 'with map'})")
-        write_estimate_bag(out_bag, BagKind.ros1 if out_bag.suffix == ".bag" else BagKind.mcap, res, sigmas)
+        write_estimate_bag(out_bag, BagKind.for_path(out_bag), res, sigmas)
         return res.engine, n
     return res.engine, 0
 
@@ -527,12 +531,10 @@ def _fuse_bag(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s, 
     except InputError as exc:
         _fail(str(exc))
     eng = res.engine
-    if not eng.initialised:
-        _fail("the engine never initialised: it needs GPS fixes while the vehicle moves "
-              f"(got {eng.counters.gps_before_init} fixes, {eng.scale_samples} scale samples)")
+    _require_initialised(eng)
     n = write_estimates(res, out, smoothed, f" ({'no map' if no_map else 'with map'})")
     if out_bag is not None:
-        write_estimate_bag(out_bag, BagKind.ros1 if out_bag.suffix == ".bag" else BagKind.mcap, res, sigmas)
+        write_estimate_bag(out_bag, BagKind.for_path(out_bag), res, sigmas)
     if data.camera_frame:
         err_console.print(f"{odometry_topic}: an optical (camera) child frame: read as x right, y down, z forward")
     if eng.cfg.odometry_sigma_per_m != cfg.odometry_sigma_per_m:

@@ -18,6 +18,8 @@ from mapfusion.errors import InputError
 from mapfusion.formats import read_gps_csv, read_tum
 from mapfusion.metrics import associate
 
+from .plot import _json, _spans, _truth
+
 #: Decimal places of a coordinate: 1e-7 degrees is about a centimetre.
 DIGITS = 7
 #: Half-width of a GPS-denied zone's polygon around the truth, metres.
@@ -46,17 +48,9 @@ def _lonlat(proj, xy: np.ndarray) -> list[list[float]]:
     return [[round(float(a), DIGITS), round(float(b), DIGITS)] for a, b in zip(np.atleast_1d(lon), np.atleast_1d(lat))]
 
 
-def _truth(run: Path):
-    from .plot import _truth as truth_of
-
-    return truth_of(run)
-
-
 def _zones(proj, xy: np.ndarray, denied: np.ndarray) -> list[dict]:
     from shapely.geometry import LineString
     from shapely.geometry.polygon import orient
-
-    from .plot import _spans
 
     out = []
     for a, b in _spans(denied):
@@ -79,10 +73,11 @@ def run_geojson(run_dir: str | Path, road=None) -> dict:
         raise InputError(f"{run}: not a run directory (no truth.csv or truth.tum)")
     proj = _projection(run, road)
     t, xy, denied = _truth(run)
-    metrics = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").exists() else {}
+    metrics = _json(run / "metrics.json")
     feats: list[dict] = [{"type": "Feature", "geometry": {"type": "LineString", "coordinates": _lonlat(proj, xy)},
                           "properties": {"layer": "truth", "name": "truth", "t_start_s": float(t[0]),
                                          "t_end_s": float(t[-1])}}]
+    prior_t = np.asarray(_json(run / "fusion_events.json").get("map_prior_t", []), float)
     for name, (key, label) in ESTIMATES.items():
         if not (run / name).exists():
             continue
@@ -91,13 +86,13 @@ def run_geojson(run_dir: str | Path, road=None) -> dict:
             continue
         feats.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": _lonlat(proj, xe[:, :2])},
                       "properties": {"layer": key, "name": label, "ate_m": metrics.get(f"ate_{key}_m")}})
-        if key == "mapfusion" and (run / "fusion_events.json").exists():
-            prior_t = np.asarray(json.loads((run / "fusion_events.json").read_text()).get("map_prior_t", []), float)
-            ja, _ = associate(te, prior_t, 1e-3) if len(prior_t) else (np.array([], int), None)
+        if key == "mapfusion" and len(prior_t):
+            ja, _ = associate(te, prior_t, 1e-3)
             ka, kb = associate(te, t)
             err = dict(zip(ka.tolist(), np.hypot(*(xe[ka, :2] - xy[kb]).T).tolist()))
             for j in ja:
-                feats.append({"type": "Feature", "geometry": {"type": "Point", "coordinates": _lonlat(proj, xe[j:j + 1, :2])[0]},
+                point = {"type": "Point", "coordinates": _lonlat(proj, xe[j:j + 1, :2])[0]}
+                feats.append({"type": "Feature", "geometry": point,
                               "properties": {"layer": "map_prior", "t_s": float(te[j]),
                                              "error_m": None if j not in err else round(err[j], 3)}})
     if (run / "gps.csv").exists():
@@ -107,8 +102,8 @@ def run_geojson(run_dir: str | Path, road=None) -> dict:
                 feats.append({"type": "Feature",
                               "geometry": {"type": "Point", "coordinates": [round(float(g.lon_deg[i]), DIGITS),
                                                                             round(float(g.lat_deg[i]), DIGITS)]},
-                              "properties": {"layer": "gps", "t_s": float(g.t_s[i]),
-                                             "sigma_m": None if not np.isfinite(g.sigma_m[i]) else float(g.sigma_m[i])}})
+                              "properties": {"layer": "gps", "t_s": float(g.t_s[i]), "sigma_m":
+                                             None if not np.isfinite(g.sigma_m[i]) else float(g.sigma_m[i])}})
     feats += _zones(proj, xy, denied)
     return {"type": "FeatureCollection", "features": feats}
 
@@ -150,5 +145,4 @@ def write_sensor_bag(run_dir: str | Path, path: str | Path, road=None) -> Path:
     t, xyz, q = read_tum(run / "odometry.tum")
     gps = read_gps_csv(run / "gps.csv") if (run / "gps.csv").exists() else None
     imu = read_imu_csv(run / "imu.csv") if (run / "imu.csv").exists() else None
-    kind = BagKind.ros1 if Path(path).suffix == ".bag" else BagKind.mcap
-    return write_bag(path, kind, (t, tum_to_matrices(xyz, q)), gps, imu)
+    return write_bag(path, BagKind.for_path(path), (t, tum_to_matrices(xyz, q)), gps, imu)

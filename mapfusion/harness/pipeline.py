@@ -139,7 +139,8 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
         metrics.update({"map_priors": c.map_priors, "gps_used": c.gps_used,
                         "gps_rejected": c.gps_rejected, "gps_rejected_gate": c.gps_rejected_gate,
                         "gps_rejected_time": c.gps_rejected_time, "gps_rejected_invalid": c.gps_rejected_invalid,
-                        "recoveries": c.recoveries, "odometry_jumps": c.odometry_jumps, "gps_relocalisations": c.gps_relocalisations,
+                        "recoveries": c.recoveries, "odometry_jumps": c.odometry_jumps,
+                        "gps_relocalisations": c.gps_relocalisations,
                         "lost_events": c.lost_events, "lost_s": mf.engine.lost_s,
                         "scale": mf.engine.scale, "initialised_at_s": mf.engine.initialised_at})
     metrics["fusion_frames_per_s"] = fusion_fps
@@ -214,17 +215,23 @@ def _recorded_map_and_gps(inputs: RecordedInputs, t0_s: float):
     """The road map and the fixes (up to --gps-until-s), checked against each other; the IMU file
     read through and checked."""
     from mapfusion.formats import check_imu_csv, read_gps_csv
-    from mapfusion.maps import resolve_map
 
     fixes = read_gps_csv(inputs.gps) if inputs.gps is not None else None
-    if fixes is not None and inputs.gps_until_s is not None:
-        fixes = fixes.until(t0_s + inputs.gps_until_s)
     if inputs.imu is not None:
         check_imu_csv(inputs.imu)
-    road = RoadMap.from_osm(resolve_map(inputs.map))
+    return _map_and_fixes(inputs.map, fixes, t0_s, inputs.gps_until_s, f"{inputs.gps}: the GPS fixes")
+
+
+def _map_and_fixes(map_name: str, fixes: GpsFixes | None, t0_s: float, gps_until_s: float | None, what: str):
+    """The road map, and the fixes up to ``gps_until_s`` after ``t0_s``, refused when they lie off it."""
+    from mapfusion.maps import resolve_map
+
+    if fixes is not None and gps_until_s is not None:
+        fixes = fixes.until(t0_s + gps_until_s)
+    road = RoadMap.from_osm(resolve_map(map_name))
     if fixes is not None and len(fixes):
         road.check_covers(np.column_stack(road.projection.to_enu(fixes.lat_deg, fixes.lon_deg)),
-                          f"{inputs.gps}: the GPS fixes on the map {inputs.map}")
+                          f"{what} on the map {map_name}")
     return road, fixes
 
 
@@ -263,8 +270,8 @@ def fuse_recorded_to_files(inputs: RecordedInputs, cfg: FusionConfig, out: Path,
     the engine initialised. Returns (engine, poses written)."""
     from mapfusion.replay import fuse_streaming, odometry_times
 
-    t0 = float(odometry_times(inputs.odometry, inputs.odometry_format, inputs.times)[0])
-    road, fixes = _recorded_map_and_gps(inputs, t0)
+    t_all = odometry_times(inputs.odometry, inputs.odometry_format, inputs.times)  # checks the whole file
+    road, fixes = _recorded_map_and_gps(inputs, float(t_all[0]))
     online = _StreamedTum(out, f"Map-Fusion online estimate{label}")
     smooth = _StreamedTum(smoothed, "Map-Fusion smoothed trajectory") if smoothed is not None else None
     writers = [w for w in (online, smooth) if w is not None]
@@ -276,7 +283,7 @@ def fuse_recorded_to_files(inputs: RecordedInputs, cfg: FusionConfig, out: Path,
 
     try:
         eng = fuse_streaming(road, inputs.odometry, inputs.odometry_format, inputs.times, inputs.odometry_frame,
-                             fixes, cfg, on_final, progress)
+                             fixes, cfg, on_final, progress, t_all)
         for w in writers:
             w.flush()
     except BaseException:
@@ -354,23 +361,15 @@ class BagInputs:
 def fuse_bag(inputs: BagInputs, cfg: FusionConfig, progress=None):
     """The engine on a ROS bag's topics (InputError / BagError on bad input): (FusionResult, BagData,
     each frame's positional σ from the engine's latest marginal, metres)."""
-    from mapfusion.bags import read_bag
-    from mapfusion.maps import resolve_map
-
-    from mapfusion.bags import sigma_per_m_from_covariance
+    from mapfusion.bags import read_bag, sigma_per_m_from_covariance
 
     data = read_bag(inputs.bag, inputs.odometry_topic, inputs.gps_topic, inputs.imu_topic, inputs.wheel_topic)
     if inputs.use_covariance and data.position_var_m2 is not None:
         s = sigma_per_m_from_covariance(data.poses, data.position_var_m2)
         if s is not None:  # the odometry's own covariance sets the engine's σ per metre
             cfg = dataclasses.replace(cfg, odometry_sigma_per_m=s)
-    fixes = data.gps
-    if fixes is not None and inputs.gps_until_s is not None:
-        fixes = fixes.until(float(data.t_s[0]) + inputs.gps_until_s)
-    road = RoadMap.from_osm(resolve_map(inputs.map))
-    if fixes is not None and len(fixes):
-        road.check_covers(np.column_stack(road.projection.to_enu(fixes.lat_deg, fixes.lon_deg)),
-                          f"{inputs.bag}: the GPS fixes of {inputs.gps_topic} on the map {inputs.map}")
+    road, fixes = _map_and_fixes(inputs.map, data.gps, float(data.t_s[0]), inputs.gps_until_s,
+                                 f"{inputs.bag}: the GPS fixes of {inputs.gps_topic}")
     sigmas: list[float] = []
     res = fuse(road, data.t_s, data.poses, fixes, cfg, progress=progress,
                on_frame=lambda e: sigmas.append(e.position_sigma_m))

@@ -116,16 +116,15 @@ def write_html(run_dir: str | Path, out: str | Path, road=None) -> Path:
     """The interactive map of a run directory (see the module docstring)."""
     import folium
 
-    from .export import _projection, run_geojson
+    from .export import run_geojson
 
     run = Path(run_dir)
-    gj = run_geojson(run, road)
+    gj = run_geojson(run, road)  # refuses a folder that is not a run directory, before the map is read
     if road is None:
         from mapfusion.formats import read_toml
         from mapfusion.roadmap import RoadMap
 
         road = RoadMap.from_osm(read_toml(run / "scenario.toml", "scenario file", InputError)["map"])
-    _projection(run, road)
     truth = next(f for f in gj["features"] if f["properties"]["layer"] == "truth")["geometry"]["coordinates"]
     lons, lats = np.array([p[0] for p in truth]), np.array([p[1] for p in truth])
     m = folium.Map(location=[float(lats.mean()), float(lons.mean())], zoom_start=15, tiles=None, control_scale=True)
