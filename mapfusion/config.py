@@ -734,6 +734,91 @@ class FusionConfig:
         max=180.0,
         source="paper IV.B; was yaw_sigma_deg's value, now its own field (issue 15)",
     )
+    # ---- wheel speed and gyro (issue 18): a second motion source, used only when both are fed
+    wheel_sigma_per_m: float = param(
+        0.005,
+        "Along-track σ of the wheel's distance per metre driven, once its scale is calibrated: weighs the "
+        "wheel against the odometry in each fused step.",
+        unit="m/m",
+        min=0.0,
+        exclusive_min=True,
+        max=1.0,
+        source="issue 18: tyre radius known to 0.5% after calibration; quantisation and noise average out per metre",
+    )
+    wheel_lateral_sigma_per_m: float = param(
+        0.01,
+        "Lateral σ of the wheel + gyro step per metre (side slip: a car does not move sideways).",
+        unit="m/m",
+        min=0.0,
+        exclusive_min=True,
+        max=1.0,
+        source="issue 18: slip angles under 0.5° in normal driving",
+    )
+    gyro_sigma_radps: float = param(
+        0.002,
+        "σ of the yaw rate after bias removal (noise and the bias estimate's error): weighs the gyro's yaw "
+        "against the odometry's.",
+        unit="rad/s",
+        min=0.0,
+        exclusive_min=True,
+        max=1.0,
+        source="issue 18: a consumer MEMS gyro (0.011 °/s/√Hz white noise, bias tracked against the VO)",
+    )
+    gyro_bias_time_constant_s: float = param(
+        60.0,
+        "The gyro bias is the yaw rate the gyro reads beyond the odometry's (or beyond zero at standstill), "
+        "averaged with exponential forgetting over this time constant.",
+        unit="s",
+        min=1.0,
+        max=86400.0,
+        source="issue 18: the IMU model's bias random walk (2e-5 rad/s²/√Hz) moves the bias by ~1e-4 rad/s a minute",
+    )
+    wheel_gate_m: float = param(
+        0.5,
+        "An odometry step farther than wheel_gate_m + wheel_gate_fraction × the wheel's distance from the wheel + "
+        "gyro step (or turning more than wheel_gate_deg differently) is a VO failure (a jump, a re-initialisation): "
+        "counted (odometry_vetoed) and replaced by the wheel + gyro step.",
+        unit="m",
+        min=0.0,
+        max=1000.0,
+        source="issue 18: VO re-initialisation jumps of metres; a clear 0.1 s step agrees within centimetres",
+    )
+    wheel_gate_fraction: float = param(
+        0.3, "See wheel_gate_m: the part of the gate proportional to the distance driven.", unit="1", min=0.0,
+        max=10.0, source="issue 18: rain drift 0.1 m/m and an uncalibrated VO scale of a few % stay inside",
+    )
+    wheel_gate_deg: float = param(
+        3.0, "See wheel_gate_m: the yaw part of the gate.", unit="deg", min=0.0, exclusive_min=True, max=180.0,
+        source="issue 18: a 0.1 s step's yaw agrees within hundredths of a degree; a VO re-initialisation turns by degrees",
+    )
+    wheel_frame_gap_s: float = param(
+        0.3,
+        "With no odometry frame for this long, wheel + gyro make the frames themselves (one per nominal odometry "
+        "period), so the estimate never stops where the camera fails.",
+        unit="s",
+        min=0.01,
+        max=60.0,
+        source="issue 18: three frames at 10 Hz; a single dropped frame is bridged by the VO itself",
+    )
+    wheel_scale_sigma: float = param(
+        0.02,
+        "σ of the wheel scale (true metres per wheel metre) before calibration; GPS fits replace it once they are "
+        "more certain.",
+        unit="1",
+        min=0.0,
+        exclusive_min=True,
+        max=0.5,
+        source="issue 18: tyre radius errors of 0.5–2% (wear, pressure, load)",
+    )
+    wheel_scale_window_s: float = param(
+        300.0,
+        "The wheel scale is fitted (similarity of the wheel + gyro track to the fixes) over the fixes of this last "
+        "window.",
+        unit="s",
+        min=10.0,
+        max=86400.0,
+        source="issue 18: long enough for 0.1% from 1 Hz fixes of σ 2 m; short enough to follow tyre warm-up",
+    )
 
     @classmethod
     def faithful(cls, **changes) -> FusionConfig:

@@ -26,6 +26,8 @@ class Counters:
     gps_relocalisations: int = 0
     updates: int = 0
     lost_events: int = 0  # road hypotheses: the estimate lost (issue 16)
+    odometry_vetoed: int = 0  # odometry steps that disagreed with wheel + gyro: replaced by theirs (issue 18)
+    wheel_frames: int = 0  # frames wheel + gyro made alone, the odometry silent (issue 18)
 
     @property
     def gps_rejected(self) -> int:

@@ -28,7 +28,8 @@ from .association import MapAssociation
 from .config import FusionConfig, StateModel
 from .counters import Counters
 from .errors import InputError
-from .gps_gate import GpsGate, Verdict
+from .gps_gate import GpsGate, GpsQueue, Verdict
+from .motion import MotionFusion
 from .initialisation import Initialiser, solve_initial_batch
 from .roadmap import RoadMap
 from .smoother import Smoother
@@ -91,9 +92,10 @@ class MapFusion:
         self._association = MapAssociation(road, self.cfg, self.counters)
         self._gate = GpsGate(self.cfg)
         self._jumps = JumpGuard(self.cfg.max_odometry_speed_mps)
+        self._motion = MotionFusion(self.cfg, self.counters)  # wheel speed and gyro, when fed (issue 18)
         self._release = Release(self.cfg, on_final)  # streaming: final frames handed out, then forgotten
         self._smoother: Smoother | None = None
-        self._gps_wait: list[tuple[float, float, float, float | None, float]] = []
+        self._gps = GpsQueue(self.cfg)
         self._since_update = 0
         self._last_cov_check_t = -math.inf
         self._pos_sigma = self._lat_sigma = 0.0  # the estimate's positional σ: largest, across the vehicle
@@ -109,6 +111,8 @@ class MapFusion:
         return None if self.alignment is None else self.alignment.scale
 
     scale_sigma = property(lambda self: None if self.alignment is None else self.alignment.scale_sigma)
+    wheel_scale = property(lambda self: self._motion.wg.scale, doc="True metres per wheel metre (1 until calibrated).")
+    gyro_bias_radps = property(lambda self: self._motion.wg.bias_radps, doc="The gyro's estimated yaw-rate bias.")
     position_sigma_m = property(lambda self: self._pos_sigma, doc="The latest marginal's largest positional σ (m).")
 
     @property
@@ -131,17 +135,44 @@ class MapFusion:
         if not (math.isfinite(t) and _finite_pose(rel)):
             self.counters.odometry_rejected += 1
             return
-        track = self.track
-        if track.t and t <= track.t[-1]:
+        track, motion = self.track, self._motion
+        if track.t and t <= track.t[-1] + motion.same_frame_s(track.t[-1]):
+            if motion.same_frame_s(track.t[-1]):  # wheel + gyro made this frame already: the odometry is back
+                motion.last_odometry_t = track.t[-1]
+                return
             raise EngineError(f"odometry time {t} does not increase (previous {track.t[-1]})")
-        position = track.append(t, self._jumps.bridge(t, rel, self.scale, self.counters))
+        step = motion.odometry_step(track.t[-1], t, rel, self.scale) if track.t and motion.active else None
+        self._append(t, self._jumps.bridge(t, rel, self.scale, self.counters) if step is None else step)
+        motion.last_odometry_t = t
+
+    def add_wheel_speed(self, t: float, speed_mps: float) -> None:
+        """One wheel-speed sample (m/s, forward); with a yaw rate it is a second motion source (issue 18)."""
+        self._motion.add_wheel(t, speed_mps)
+        self._wheel_frames()
+
+    def add_yaw_rate(self, t: float, yaw_rate_radps: float) -> None:
+        """One gyro yaw-rate sample (rad/s about the vehicle's up axis, counter-clockwise positive)."""
+        self._motion.add_yaw_rate(t, yaw_rate_radps)
+        self._wheel_frames()
+
+    def add_imu(self, t: float, gyro_radps, accel_mps2=None) -> None:
+        """One IMU sample (body frame: x forward, y left, z up): the planar engine takes gyro z."""
+        self.add_yaw_rate(t, float(np.asarray(gyro_radps, dtype=float)[2]))
+
+    def _wheel_frames(self) -> None:  # frames wheel and gyro make alone while the odometry is silent
+        track, motion = self.track, self._motion
+        while (t := motion.frame_due(track.t[-1] if track.t else None, track.nominal_period_s)) is not None:
+            self._append(t, motion.wheel_step(track.t[-1], t, self.scale) if track.t else gtsam.Pose3())
+
+    def _append(self, t: float, rel: gtsam.Pose3) -> None:
+        position = self.track.append(t, rel)
         self.counters.frames += 1
         self.matched_way.append(-1)
         if not self.initialised:
             self.initialiser.scale_estimator.add_odometry(t, position)  # read only until initialised
             self._try_initialise()
         else:
-            self._add_frame(len(track) - 1)
+            self._add_frame(len(self.track) - 1)
         self._flush_gps()
         self._release.step(self)
 
@@ -154,6 +185,8 @@ class MapFusion:
         sigma = _gps_sigma(sigma_m, self.cfg.gps_sigma_m)
         x, y = self.road.projection.to_enu(lat, lon)
         t, x, y = float(t), float(x), float(y)
+        if self._motion.active:
+            self._motion.wg.add_fix(t, x, y)
         if not self.initialised:
             self.counters.gps_before_init += 1
             self.initialiser.add_fix(t, x, y, sigma)
@@ -163,7 +196,7 @@ class MapFusion:
             fit = self.initialiser.refit_with_fix(self.track, t, x, y, sigma)
             if fit is not None:
                 self.alignment = dataclasses.replace(self._aligned, scale=fit.scale, scale_sigma=fit.scale_sigma)
-        self._gps_wait.append((t, x, y, None if alt is None else float(alt), sigma))
+        self._gps.waiting.append((t, x, y, None if alt is None else float(alt), sigma))
         self._flush_gps()
 
     def estimate(self) -> gtsam.Pose3 | None:
@@ -188,8 +221,7 @@ class MapFusion:
     def finish(self) -> None:
         """Add what is pending (call once at the end); later fixes count as rejected for their time."""
         if self.initialised:
-            self.counters.gps_rejected_time += len(self._gps_wait)
-            self._gps_wait = []
+            self._gps.drop(self.counters)
             self._update()
         self._release.finish(self)
 
@@ -289,19 +321,15 @@ class MapFusion:
         """Paper IV.B: when the marginal positional σ exceeds the road width, the odometry estimate
         becomes a prior (with σ = the road width), so uncertainty cannot grow without bound."""
         cfg, sm = self.cfg, self._smoother
-        if not cfg.odometry_priors or sm is None:
+        if not cfg.odometry_priors or sm is None or sm.last_updated_key < 0:
             return
-        if self.track.t[k] - self._last_cov_check_t < cfg.odometry_prior_every_s or sm.last_updated_key < 0:
+        if self.track.t[k] - self._last_cov_check_t < cfg.odometry_prior_every_s:
             return
         self._last_cov_check_t = self.track.t[k]
-        try:
-            cov = sm.covariance(sm.last_updated_key)
-        except (RuntimeError, IndexError):
-            # no marginal for that key (e.g. ISAM2 re-anchored after a failed Cholesky update and
-            # the key is not in the new Bayes tree): skip this check, the next one will have one
+        sigmas = sm.position_sigmas()
+        if sigmas is None:
             return
-        xy = cov[3:5, 3:5]
-        self._pos_sigma, self._lat_sigma = (math.sqrt(max(v, 0.0)) for v in (np.linalg.eigvalsh(xy).max(), xy[1, 1]))
+        self._pos_sigma, self._lat_sigma = sigmas
         prior = self._association.odometry_prior(k, pred, self._pos_sigma)
         if prior is not None:
             sm.add(prior)
@@ -310,21 +338,9 @@ class MapFusion:
     # ------------------------------------------------------------------ GPS
     def _flush_gps(self) -> None:
         """Attach waiting fixes to the frame nearest in time, once that frame exists."""
-        track = self.track
-        if not self.initialised or not track.t:
-            return
-        keep = []
-        for fix in self._gps_wait:
-            t = fix[0]
-            if t > track.t[-1] + 0.5 * track.frame_period():
-                keep.append(fix)
-                continue
-            k = track.frame_at(t)
-            if abs(track.t[k] - t) > self.cfg.gps_max_frame_gap_s:
-                self.counters.gps_rejected_time += 1
-                continue
-            self._gate_and_add(k, *fix[1:])
-        self._gps_wait = keep
+        if self.initialised and self.track.t:
+            for k, fix in self._gps.due(self.track, self.counters):
+                self._gate_and_add(k, *fix[1:])
 
     def _gate_and_add(self, k: int, x: float, y: float, alt: float | None, sigma: float) -> None:
         verdict = self._gate.check(self.track, k, x, y, sigma, self._pos_sigma)
@@ -339,28 +355,14 @@ class MapFusion:
                      self.track.t[k], len(self._gate.run))
             self._relocalise(sigma)
 
-    def _relocalise(self, sigma: float) -> None:
-        """Re-initialise from GPS, as at the start: a fresh smoother is anchored at the gate's
-        re-localisation and the frames since are re-added on top."""
+    def _relocalise(self, sigma: float) -> None:  # from GPS, as at the start: a fresh smoother at the gate's pose
         r = self._gate.relocalisation(self.track, sigma)
-        sm, track = self._sm, self.track
-        sm.finalise_upto(r.k - 1)
-        sm.restart()
-        sig = factors.pose_sigmas(StateModel.planar, r.yaw_sigma_rad, sigma)
-        sm.add(factors.pose_prior(r.k, r.pose, factors.diagonal(sig)))
-        sm.insert(r.k, r.pose)
-        track.online[r.k] = pose = r.pose
-        for k in range(r.k + 1, len(track)):
-            step = self._step(k)
-            sm.add(self._between(k, step=step))
-            pose = pose.compose(step)
-            sm.insert(k, pose)
-            track.online[k] = pose
+        noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, r.yaw_sigma_rad, sigma))
+        self._sm.restart_from(r.k, r.pose, noise, self._step)
         self._pos_sigma = self._lat_sigma = sigma
         self._association.reset()
         self._update()
 
-    # ------------------------------------------------------------------ the smoother
     def _update(self) -> None:
         if self._sm.update():
             self._since_update = 0

@@ -238,6 +238,9 @@ GPS_HEADER = ("t", "lat", "lon", "alt", "sigma_m")
 #: The largest GPS σ a file may give: beyond the size of the Earth a σ says nothing.
 MAX_GPS_SIGMA_M = 1e7
 IMU_HEADER = ("t", "ax", "ay", "az", "gx", "gy", "gz")
+WHEEL_HEADER = ("t", "speed_mps")
+#: A wheel speed above this is no road vehicle's (m/s): the file is not a wheel-speed log.
+MAX_WHEEL_SPEED_MPS = 150.0
 
 
 @dataclass
@@ -346,3 +349,27 @@ def read_imu_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rows = [vals for _, vals in _csv_rows(p, IMU_HEADER, set())]
     a = np.asarray(rows, dtype=float).reshape(-1, 7)
     return a[:, 0], a[:, 1:4], a[:, 4:7]
+
+
+def write_wheel_csv(path: str | Path, t_s, speed_mps) -> Path:
+    """``wheel.csv``: ``t,speed_mps`` (seconds, metres per second; forward speed, ≥ 0)."""
+    p = Path(path)
+    with open(p, "w") as f:
+        f.write(",".join(WHEEL_HEADER) + "\n")
+        f.writelines(f"{t:.4f},{v:.4f}\n" for t, v in zip(t_s, speed_mps))
+    return p
+
+
+def read_wheel_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a wheel-speed CSV: ``(t (N,), speed_mps (N,))``. A speed that is negative, non-finite or
+    beyond any road vehicle's raises :class:`FormatError` with file and line."""
+    p = Path(path)
+    rows = []
+    for lineno, vals in _csv_rows(p, WHEEL_HEADER, set()):
+        if not 0.0 <= vals[1] <= MAX_WHEEL_SPEED_MPS:
+            raise FormatError(f"{p}:{lineno}: speed_mps must be within 0–{MAX_WHEEL_SPEED_MPS:g} m/s, got {vals[1]:g}")
+        rows.append(vals)
+    a = np.asarray(rows, dtype=float).reshape(-1, 2)
+    if not len(a):
+        raise FormatError(f"{p}: no wheel-speed samples in the file")
+    return a[:, 0], a[:, 1]

@@ -21,6 +21,40 @@ from .config import FusionConfig, StateModel
 from .track import Track, level
 
 
+#: A fix waiting for its frame: (t, x, y, alt or None, σ), map ENU metres.
+Fix = tuple[float, float, float, "float | None", float]
+
+
+class GpsQueue:
+    """Fixes that arrived before the odometry frame nearest to them: each is handed out once that
+    frame exists, or counted as rejected for its time (no frame within ``gps_max_frame_gap_s``)."""
+
+    def __init__(self, cfg: FusionConfig) -> None:
+        self.cfg = cfg
+        self.waiting: list[Fix] = []
+
+    def due(self, track: Track, counters) -> list[tuple[int, Fix]]:
+        """(frame, fix) of every waiting fix whose frame now exists, in arrival order."""
+        out, keep = [], []
+        for fix in self.waiting:
+            t = fix[0]
+            if t > track.t[-1] + 0.5 * track.frame_period():
+                keep.append(fix)
+                continue
+            k = track.frame_at(t)
+            if abs(track.t[k] - t) > self.cfg.gps_max_frame_gap_s:
+                counters.gps_rejected_time += 1
+                continue
+            out.append((k, fix))
+        self.waiting = keep
+        return out
+
+    def drop(self, counters) -> None:
+        """The drive ended: every waiting fix is rejected for its time."""
+        counters.gps_rejected_time += len(self.waiting)
+        self.waiting = []
+
+
 class Verdict(enum.Enum):
     """What to do with one fix."""
 

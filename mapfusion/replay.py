@@ -121,6 +121,24 @@ def load_fusion_config(path: str | Path | None, **overrides) -> FusionConfig:
     return from_mapping(FusionConfig, data, where, prefix="mapfusion." if path else "")
 
 
+@dataclass(frozen=True)
+class MotionSamples:
+    """Wheel speed and gyro yaw rate fed beside the odometry (issue 18): each in time order."""
+
+    wheel_t_s: np.ndarray
+    wheel_speed_mps: np.ndarray
+    gyro_t_s: np.ndarray
+    yaw_rate_radps: np.ndarray
+
+    def merged(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(t, is_wheel, value) of both streams in time order (a wheel sample first at equal times)."""
+        t = np.concatenate((self.wheel_t_s, self.gyro_t_s))
+        is_wheel = np.concatenate((np.ones(len(self.wheel_t_s), bool), np.zeros(len(self.gyro_t_s), bool)))
+        v = np.concatenate((self.wheel_speed_mps, self.yaw_rate_radps))
+        order = np.lexsort((~is_wheel, t))
+        return t[order], is_wheel[order], v[order]
+
+
 @dataclass
 class FusionResult:
     t_s: np.ndarray
@@ -130,14 +148,14 @@ class FusionResult:
 
 
 def fuse(road: RoadMap, t_odo: np.ndarray, poses: np.ndarray, gps: GpsFixes | None, cfg: FusionConfig,
-         progress=None, on_frame=None) -> FusionResult:
-    """Feed odometry (absolute poses in its own frame) and GPS to the engine in time order;
-    ``on_frame(engine)`` after every frame."""
+         progress=None, on_frame=None, motion: MotionSamples | None = None) -> FusionResult:
+    """Feed odometry (absolute poses in its own frame), GPS and (optionally) wheel speed and yaw rate to
+    the engine in time order; ``on_frame(engine)`` after every frame."""
     n = len(t_odo)
     if n < 2:
         raise FormatError("odometry: need at least two frames")
     eng = make_engine(road, t_odo, gps, cfg)
-    feed(eng, [(np.asarray(t_odo), np.asarray(poses))], gps, n, progress, on_frame)
+    feed(eng, [(np.asarray(t_odo), np.asarray(poses))], gps, n, progress, on_frame, motion)
     t_s, online = eng.online_estimates()
     return FusionResult(t_s, online, eng.trajectory(), eng)
 
@@ -153,7 +171,7 @@ def make_engine(road: RoadMap, t_odo: np.ndarray, gps: GpsFixes | None, cfg: Fus
 
 def fuse_streaming(road: RoadMap, path: str | Path, fmt: OdometryFormat, times: str | Path | None,
                    frame: OdometryFrame, gps: GpsFixes | None, cfg: FusionConfig, on_final, progress=None,
-                   t_all: np.ndarray | None = None) -> MapFusion:
+                   t_all: np.ndarray | None = None, motion: MotionSamples | None = None) -> MapFusion:
     """The engine over an odometry file of any length, in flat memory: the file is read through
     once to check it (and for its rate; ``t_all``: that pass's times, when the caller made it),
     then fed a chunk at a time; each frame goes to ``on_final(t, online, smoothed)`` once final
@@ -165,20 +183,36 @@ def fuse_streaming(road: RoadMap, path: str | Path, fmt: OdometryFormat, times: 
     eng = make_engine(road, t_all, gps, cfg, on_final)
     n = len(t_all)
     del t_all
-    feed(eng, read_odometry_chunks(path, fmt, times, frame), gps, n, progress)
+    feed(eng, read_odometry_chunks(path, fmt, times, frame), gps, n, progress, motion=motion)
     return eng
 
 
-def feed(eng: MapFusion, chunks, gps: GpsFixes | None, n: int, progress=None, on_frame=None) -> None:
-    """Feed (t, absolute poses) chunks and the fixes to the engine in time order, then finish it;
-    ``on_frame(engine)`` after each frame."""
+def feed(eng: MapFusion, chunks, gps: GpsFixes | None, n: int, progress=None, on_frame=None,
+         motion: MotionSamples | None = None) -> None:
+    """Feed (t, absolute poses) chunks, the fixes and the wheel and gyro samples to the engine in time
+    order (at equal times: wheel and gyro, then GPS, then the frame), then finish it;
+    ``on_frame(engine)`` after each frame the engine made (wheel + gyro make frames of their own where
+    the odometry has none)."""
     gi, k = 0, 0
     ng = 0 if gps is None else len(gps)
+    mt, mw, mv = motion.merged() if motion is not None else (np.empty(0), np.empty(0, bool), np.empty(0))
+    mi, nm, seen = 0, len(mt), 0
+
+    def samples_until(t_end: float) -> None:
+        nonlocal mi, seen
+        while mi < nm and mt[mi] <= t_end:
+            (eng.add_wheel_speed if mw[mi] else eng.add_yaw_rate)(float(mt[mi]), float(mv[mi]))
+            mi += 1
+        while on_frame is not None and seen < eng.counters.frames:
+            on_frame(eng)
+            seen += 1
+
     prev = np.eye(4)
     for t_chunk, poses in chunks:
         inv = np.linalg.inv(poses[:-1])
         for j in range(len(t_chunk)):
             t = float(t_chunk[j])
+            samples_until(t + 1e-9)
             while gps is not None and gi < ng and gps.t_s[gi] <= t + 1e-9:
                 alt = gps.alt_m[gi]
                 eng.add_gps(float(gps.t_s[gi]), float(gps.lat_deg[gi]), float(gps.lon_deg[gi]),
@@ -191,12 +225,12 @@ def feed(eng: MapFusion, chunks, gps: GpsFixes | None, n: int, progress=None, on
             else:
                 rel = inv[j - 1] @ poses[j]
             eng.add_odometry(t, rel)
-            if on_frame is not None:
-                on_frame(eng)
+            samples_until(-math.inf)  # on_frame for the frame just made
             if progress is not None and k % 500 == 0:
                 progress(k, n)
             k += 1
         prev = poses[-1]
+    samples_until(math.inf)
     eng.finish()
 
 

@@ -103,6 +103,20 @@ class Smoother:
         self.pending = Pending()
         self.last_updated_key, self.last_updated_pose = -1, None
 
+    def restart_from(self, k0: int, pose: gtsam.Pose3, noise, step_for: Callable[[int], gtsam.Pose3]) -> None:
+        """Start afresh at frame ``k0`` (a prior on ``pose`` with ``noise``; the frames before keep their
+        causal estimates as final) and re-add the frames since, each by its step (a re-localisation)."""
+        self.finalise_upto(k0 - 1)
+        self.restart()
+        self.add(factors.pose_prior(k0, pose, noise))
+        self.insert(k0, pose)
+        self.track.online[k0] = pose
+        for k in range(k0 + 1, len(self.track)):
+            self.add(self._between_for(k))
+            pose = pose.compose(step_for(k))
+            self.insert(k, pose)
+            self.track.online[k] = pose
+
     def finalise_upto(self, k: int) -> None:
         """Frames up to k keep their causal estimate as final where they have none yet."""
         online = self.track.online
@@ -117,6 +131,17 @@ class Smoother:
 
     def covariance(self, k: int) -> np.ndarray:
         return self.backend.covariance(X(k))
+
+    def position_sigmas(self) -> tuple[float, float] | None:
+        """The latest updated frame's largest positional σ and its σ across the vehicle (m); None when
+        GTSAM has no marginal for it (e.g. ISAM2 re-anchored after a failed Cholesky update and the key
+        is not in the new Bayes tree: the next check will have one)."""
+        try:
+            cov = self.covariance(self.last_updated_key)
+        except (RuntimeError, IndexError):
+            return None
+        xy = cov[3:5, 3:5]
+        return math.sqrt(max(float(np.linalg.eigvalsh(xy).max()), 0.0)), math.sqrt(max(float(xy[1, 1]), 0.0))
 
     def poses(self) -> dict[int, gtsam.Pose3 | None]:
         """Final estimates of the frames let go, then the backend's current ones."""

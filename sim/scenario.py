@@ -65,11 +65,30 @@ class WeatherKind(str, enum.Enum):
 
 
 class OdometryKind(str, enum.Enum):
-    """The two odometry baselines of the paper."""
+    """The two odometry baselines of the paper, each alone or with the car's wheel speed and gyro."""
 
     vo = "vo"  # stereo visual odometry, DROID-SLAM-like
     vio = "vio"  # stereo visual-inertial odometry, ORB-SLAM3-like
     recorded = "recorded"  # a real odometry's output on a recorded drive ([odometry] file, KITTI format)
+    vo_wheel = "vo+wheel"  # the vo, plus wheel speed ([wheel]) and the IMU's gyro into the engine (issue 18)
+    vio_wheel = "vio+wheel"  # the vio, plus wheel speed and gyro
+
+    @property
+    def visual(self) -> OdometryKind:
+        """The camera-based part (its preset): vo for vo+wheel, vio for vio+wheel."""
+        return {OdometryKind.vo_wheel: OdometryKind.vo, OdometryKind.vio_wheel: OdometryKind.vio}.get(self, self)
+
+    @property
+    def wheel(self) -> bool:
+        """Whether wheel speed and gyro go into the engine (and wheel.csv into the run directory)."""
+        return self in (OdometryKind.vo_wheel, OdometryKind.vio_wheel)
+
+
+class Vehicle(str, enum.Enum):
+    """Presets of the wheel-speed model (``[wheel] vehicle``)."""
+
+    car = "car"
+    truck = "truck"
 
 
 class GpsMode(str, enum.Enum):
@@ -174,12 +193,22 @@ class OdometryConfig:
     """``[odometry]``: the odometry kind; ``overrides`` (any other key of the table) replace
     fields of the kind × weather preset (see ``sim.sensors.OdometryParams``)."""
 
-    kind: OdometryKind = param(OdometryKind.vo, "vo (stereo VO) | vio (stereo VIO) | recorded (a real odometry's "
+    kind: OdometryKind = param(OdometryKind.vo, "vo (stereo VO) | vio (stereo VIO) | vo+wheel | vio+wheel (the same "
+                               "with the car's wheel speed and gyro fused: [wheel]) | recorded (a real odometry's "
                                "output, with file).")
     overrides: tuple[tuple[str, float], ...] = param((), "Preset fields replaced by the scenario.")
     file: str = param("", "kind = recorded: the odometry's poses in KITTI's format (12 numbers a line, camera frame: "
                       "x right, y down, z forward), one line per frame of the recorded drive (truth = a KITTI "
                       "directory); may name ${MAPFUSION_DATA}.")
+
+
+@dataclass(frozen=True)
+class WheelConfig:
+    """``[wheel]``: the wheel-speed sensor of odometry kinds vo+wheel and vio+wheel; ``overrides`` (any
+    other key of the table) replace fields of the vehicle's preset (see ``sim.sensors.WheelParams``)."""
+
+    vehicle: Vehicle = param(Vehicle.car, "car | truck: the preset of the wheel-speed model.")
+    overrides: tuple[tuple[str, float], ...] = param((), "Preset fields replaced by the scenario.")
 
 
 @dataclass(frozen=True)
@@ -203,6 +232,7 @@ class Scenario:
     odometry: OdometryConfig = param(OdometryConfig(), "[odometry]")
     gps: GpsConfig = param(GpsConfig(), "[gps]")
     imu: ImuParams = param(ImuParams(), "[imu]")
+    wheel: WheelConfig = param(WheelConfig(), "[wheel] (odometry kinds with +wheel only)")
     tunnels: tuple[TunnelZone, ...] = param((), "[[tunnels]]")
     mapfusion: FusionConfig = param(FusionConfig(), "[mapfusion]")
 
@@ -212,6 +242,9 @@ class Scenario:
         odo = d.pop("odometry")
         d["odometry"] = {"kind": odo["kind"], **({"file": odo["file"]} if odo.get("file") else {}),
                          **{k: v for k, v in odo.get("overrides", [])}}
+        wheel = d.pop("wheel")
+        if self.odometry.kind.wheel:  # written only where the scenario has a wheel sensor
+            d["wheel"] = {"vehicle": wheel["vehicle"], **{k: v for k, v in wheel.get("overrides", [])}}
         d["tunnels"] = [to_mapping(z) for z in self.tunnels]
         if not d["tunnels"]:
             del d["tunnels"]
@@ -270,7 +303,19 @@ def _scenario_from_dict(data: dict, where: str, base_dir: Path | None, resolve: 
         kind = odo.pop("kind", OdometryKind.vo.value)
         file = odo.pop("file", "")
         base = from_mapping(OdometryConfig, {"kind": kind, "file": file}, where, prefix="odometry.")
-        kwargs["odometry"] = dataclasses.replace(base, overrides=_odometry_overrides(odo, where))
+        kwargs["odometry"] = dataclasses.replace(base, overrides=_preset_overrides(odo, where, "odometry"))
+    if "wheel" in data:
+        wheel = data.pop("wheel")
+        if not isinstance(wheel, dict):
+            raise ScenarioError(f"{where}: [wheel] must be a table")
+        base_w = from_mapping(WheelConfig, {"vehicle": wheel.pop("vehicle", Vehicle.car.value)}, where, prefix="wheel.")
+        kwargs["wheel"] = dataclasses.replace(base_w, overrides=_preset_overrides(wheel, where, "wheel"))
+        from .sensors import wheel_preset
+
+        w = wheel_preset(kwargs["wheel"].vehicle).with_overrides(kwargs["wheel"].overrides)
+        if w.scale_error_max < w.scale_error_min:
+            raise ScenarioError(f"{where}: wheel.scale_error_max ({w.scale_error_max:g}) is below wheel.scale_error_min "
+                                f"({w.scale_error_min:g})")
     if "tunnels" in data:
         zones = data.pop("tunnels")
         if not isinstance(zones, list):
@@ -327,15 +372,17 @@ def _scenario_from_dict(data: dict, where: str, base_dir: Path | None, resolve: 
 KITTI_FILES = ("poses.txt", "times.txt", "rtk_gps.kml")
 
 
-def _odometry_overrides(table: dict, where: str) -> tuple[tuple[str, float], ...]:
-    """The preset fields an ``[odometry]`` table replaces, each checked against its documented range."""
-    from .sensors import OdometryParams
+def _preset_overrides(table: dict, where: str, section: str) -> tuple[tuple[str, float], ...]:
+    """The preset fields an ``[odometry]`` or ``[wheel]`` table replaces, each checked against its
+    documented range."""
+    from .sensors import OdometryParams, WheelParams
 
-    known = {f.name for f in dataclasses.fields(OdometryParams)}
+    cls = OdometryParams if section == "odometry" else WheelParams
+    known = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(table) - known)
     if unknown:
-        raise ScenarioError(f"{where}: unknown key odometry.{unknown[0]} (preset fields: {', '.join(sorted(known))})")
-    checked = from_mapping(OdometryParams, table, where, prefix="odometry.")
+        raise ScenarioError(f"{where}: unknown key {section}.{unknown[0]} (preset fields: {', '.join(sorted(known))})")
+    checked = from_mapping(cls, table, where, prefix=f"{section}.")
     return tuple((k, float(getattr(checked, k))) for k in sorted(table))
 
 

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from mapfusion.config import param
 
-from .scenario import GpsConfig, GpsMode, ImuParams, OdometryKind, Scenario, WeatherKind
+from .scenario import GpsConfig, GpsMode, ImuParams, OdometryKind, Scenario, Vehicle, WeatherKind
 
 
 @dataclass(frozen=True)
@@ -74,11 +74,81 @@ VIO_HEAVY_RAIN = {"map_reset_rate_per_km": 0.5}
 
 def odometry_preset(kind: OdometryKind | str, weather: WeatherKind | str) -> OdometryParams:
     """The preset parameters of an odometry kind in a weather."""
-    kind, weather = OdometryKind(kind), WeatherKind(weather)
+    kind, weather = OdometryKind(kind).visual, WeatherKind(weather)
     changes = {**KIND_PRESETS[kind], **WEATHER_PRESETS[weather]}
     if kind is OdometryKind.vio and weather is WeatherKind.heavy_rain:
         changes.update(VIO_HEAVY_RAIN)
     return dataclasses.replace(OdometryParams(), **changes)
+
+
+# ----------------------------------------------------------------------------- wheel speed
+@dataclass(frozen=True)
+class WheelParams:
+    """Error model of a wheel-speed sensor (the ABS/ESC wheel speeds as the car's bus reports them)."""
+
+    rate_hz: float = param(50.0, "Sample rate.", unit="Hz", min=1.0, max=1000.0)
+    scale_error_min: float = param(0.005, "Smallest |scale error| of a run (tyre radius: wear, pressure, load); "
+                                   "each run draws |error| uniformly in [min, max] with a random sign.", unit="1",
+                                   min=0.0, max=0.2)
+    scale_error_max: float = param(0.02, "Largest |scale error| of a run.", unit="1", min=0.0, max=0.2)
+    speed_noise_mps: float = param(0.02, "White noise on each sample.", unit="m/s", min=0.0, max=10.0)
+    quantum_mps: float = param(0.02, "Resolution of the reported speed (samples are rounded to it).", unit="m/s",
+                               min=0.0, max=10.0)
+    slip_per_mps2: float = param(0.02, "In rain: over-read of the speed per m/s² of acceleration or braking beyond "
+                                 "slip_min_accel_mps2 (wheels spin up or lock briefly); doubled in heavy rain.",
+                                 unit="1/(m/s²)", min=0.0, max=1.0)
+    slip_min_accel_mps2: float = param(1.0, "Acceleration or braking below this slips no wheel.", unit="m/s²", min=0.0,
+                                       max=20.0)
+
+    def with_overrides(self, overrides: tuple[tuple[str, float], ...]) -> WheelParams:
+        return dataclasses.replace(self, **dict(overrides))
+
+
+#: Preset changes from the base (a passenger car), by vehicle.
+VEHICLE_PRESETS: dict[Vehicle, dict[str, float]] = {
+    Vehicle.car: {},
+    Vehicle.truck: {"rate_hz": 20.0, "scale_error_min": 0.01, "scale_error_max": 0.03, "quantum_mps": 0.05,
+                    "slip_per_mps2": 0.04, "slip_min_accel_mps2": 0.7},
+}
+
+
+def wheel_preset(vehicle: Vehicle | str) -> WheelParams:
+    """The preset parameters of a vehicle's wheel-speed sensor."""
+    return dataclasses.replace(WheelParams(), **VEHICLE_PRESETS[Vehicle(vehicle)])
+
+
+@dataclass
+class WheelOutput:
+    t_s: np.ndarray
+    speed_mps: np.ndarray
+    scale_error: float  # the run's drawn error (reported = (1 + error) × true)
+
+
+def simulate_wheel(truth: Truth, p: WheelParams, rng: np.random.Generator,
+                   weather: WeatherKind = WeatherKind.clear) -> WheelOutput:
+    """Wheel speed at ``rate_hz`` from the truth: the distance it drives each step over the step's
+    duration (so the samples integrate to the truth's path length), times (1 + the run's scale
+    error), over-read under hard acceleration or braking in rain, plus white noise, rounded to
+    ``quantum_mps`` and never negative."""
+    if p.scale_error_max < p.scale_error_min:
+        raise ValueError(f"wheel: scale_error_max ({p.scale_error_max}) is below scale_error_min ({p.scale_error_min})")
+    t_truth = np.asarray(truth.t_s, float)
+    t = np.arange(t_truth[0], t_truth[-1] + 1e-9, 1.0 / p.rate_hz)
+    step_v = np.hypot(np.diff(truth.x_m), np.diff(truth.y_m)) / np.maximum(np.diff(t_truth), 1e-9)
+    k = np.clip(np.searchsorted(t_truth, t, side="right") - 1, 0, max(len(step_v) - 1, 0))
+    true_v = step_v[k] if len(step_v) else np.zeros_like(t)
+    # the acceleration that slips a wheel: of the speed smoothed over a second (SUMO steps its speed)
+    w = max(1, int(round(1.0 / float(np.median(np.diff(t_truth)))))) if len(t_truth) > 1 else 1
+    smooth = np.convolve(step_v, np.ones(w) / w, mode="same") if len(step_v) else step_v
+    step_a = np.gradient(smooth, t_truth[:-1]) if len(step_v) > 1 else np.zeros_like(step_v)
+    accel = np.abs(step_a[k]) if len(step_v) else np.zeros_like(t)
+    error = rng.uniform(p.scale_error_min, p.scale_error_max) * (1.0 if rng.random() < 0.5 else -1.0)
+    slip = {WeatherKind.clear: 0.0, WeatherKind.rain: 1.0, WeatherKind.heavy_rain: 2.0}[WeatherKind(weather)]
+    over = slip * p.slip_per_mps2 * np.maximum(accel - p.slip_min_accel_mps2, 0.0)
+    v = true_v * (1.0 + error) * (1.0 + over) + rng.normal(0.0, p.speed_noise_mps, len(t))
+    if p.quantum_mps > 0:
+        v = np.round(v / p.quantum_mps) * p.quantum_mps
+    return WheelOutput(t, np.maximum(v, 0.0), float(error))
 
 
 # ----------------------------------------------------------------------------- IMU
@@ -380,12 +450,14 @@ class SensorData:
     imu: ImuOutput
     gps: GpsOutput
     params: OdometryParams
+    wheel: WheelOutput | None = None  # odometry kinds with +wheel only
 
 
 def sensor_streams(seed: int) -> dict[str, np.random.Generator]:
     """Independent generators per sensor from the scenario seed (changing one never moves another)."""
-    children = np.random.SeedSequence([seed, 0x5E45]).spawn(3)
-    return {name: np.random.default_rng(c) for name, c in zip(("odometry", "imu", "gps"), children)}
+    # a fourth child leaves the first three as they were: spawn keys are (0,), (1,), (2,), (3,)
+    children = np.random.SeedSequence([seed, 0x5E45]).spawn(4)
+    return {name: np.random.default_rng(c) for name, c in zip(("odometry", "imu", "gps", "wheel"), children)}
 
 
 def recorded_odometry(truth: Truth, path: str) -> OdometryOutput:
@@ -415,4 +487,8 @@ def synthesise(sc: Scenario, truth: Truth, gps: GpsOutput | None = None) -> Sens
         odo = simulate_odometry(truth, params, rng["odometry"], rain=WeatherKind(sc.weather.kind) is not WeatherKind.clear)
     imu = simulate_imu(truth, sc.imu, rng["imu"])
     gps = simulate_gps(truth, sc.gps, rng["gps"]) if gps is None else gps
-    return SensorData(odo, imu, gps, params)
+    wheel = None
+    if sc.odometry.kind.wheel:
+        wheel = simulate_wheel(truth, wheel_preset(sc.wheel.vehicle).with_overrides(sc.wheel.overrides), rng["wheel"],
+                               sc.weather.kind)
+    return SensorData(odo, imu, gps, params, wheel)

@@ -17,7 +17,8 @@ from mapfusion.formats import GpsFixes, write_tum
 from mapfusion.metrics import associate, ate, delocalized, match_rate, online_error, rpe_per_100m, zone_rmse
 from mapfusion.config import FusionConfig
 from mapfusion.roadmap import RoadMap
-from mapfusion.replay import FusionResult, OdometryFormat, OdometryFrame, fuse, poses_to_arrays, read_odometry
+from mapfusion.replay import (FusionResult, MotionSamples, OdometryFormat, OdometryFrame, fuse, poses_to_arrays,
+                              read_odometry)
 
 from .results import Estimator, ate_key, estimator_metrics, non_finite_to_none
 
@@ -57,6 +58,19 @@ def _evaluate(res: FusionResult, truth: Truth, estimator: Estimator, deloc_m: fl
     tun = zone_rmse(gt, xyz[ia], e.visually_degraded[ib])
     rpe = rpe_per_100m(gt, e.yaw_rad[ib], xyz[ia], yaw[ia])
     return estimator_metrics(estimator, a, delocalized(a, deloc_m), on, tun, rpe)
+
+
+def _nearest(t_ref: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Index of the nearest time in ``t_ref`` (increasing) for each of ``t``."""
+    i = np.clip(np.searchsorted(t_ref, t), 1, len(t_ref) - 1)
+    return np.where(np.abs(t_ref[i - 1] - t) <= np.abs(t_ref[i] - t), i - 1, i)
+
+
+def motion_of(sensors: SensorData) -> MotionSamples | None:
+    """The wheel speed and the IMU's yaw rate (gyro z) for the engine, where the odometry kind has a wheel."""
+    if sensors.wheel is None:
+        return None
+    return MotionSamples(sensors.wheel.t_s, sensors.wheel.speed_mps, sensors.imu.t_s, sensors.imu.gyro_radps[:, 2])
 
 
 def fixes_of(sensors: SensorData, road: RoadMap) -> GpsFixes:
@@ -99,10 +113,10 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
     sc, truth, sensors = sim.sc, sim.truth, sim.sensors
     road = sim.road
     fixes = fixes_of(sensors, road)
-    odo = sensors.odometry
-    base = baseline or fuse(road, odo.t_s, odo.poses, fixes, dataclasses.replace(cfg, use_map=False))
+    odo, motion = sensors.odometry, motion_of(sensors)
+    base = baseline or fuse(road, odo.t_s, odo.poses, fixes, dataclasses.replace(cfg, use_map=False), motion=motion)
     t0 = time.perf_counter()
-    mf = fuse(road, odo.t_s, odo.poses, fixes, cfg)
+    mf = fuse(road, odo.t_s, odo.poses, fixes, cfg, motion=motion)
     fusion_fps = len(odo.t_s) / max(time.perf_counter() - t0, 1e-9)
     metrics: dict = {
         "scenario": sc.name, "seed": sc.seed, "map": Path(sc.map).name, "weather": sc.weather.kind.value,
@@ -126,7 +140,8 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
         # recorded drive has no such truth: null)
         metrics["match_rate"] = metrics["match_rate_road"] = None
         if sim.drive is not None:
-            frames = sensors.odometry.frame_index
+            # the truth frame of each engine frame (wheel + gyro add frames where the odometry has none)
+            frames = sensors.odometry.frame_index if motion is None else _nearest(truth.t_s, mf.t_s)
             matched = np.asarray(mf.engine.matched_way)
             true_way = sim.drive.ego.osm_way[frames]
             sel = matched >= 0
@@ -143,6 +158,10 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
                         "gps_relocalisations": c.gps_relocalisations,
                         "lost_events": c.lost_events, "lost_s": mf.engine.lost_s,
                         "scale": mf.engine.scale, "initialised_at_s": mf.engine.initialised_at})
+        if motion is not None:  # wheel + gyro runs only: the vo and vio rows keep their keys
+            metrics.update({"odometry_vetoed": c.odometry_vetoed, "wheel_frames": c.wheel_frames,
+                            "wheel_scale": mf.engine.wheel_scale, "wheel_scale_true": 1.0 / (1.0 + sensors.wheel.scale_error),
+                            "gyro_bias_radps": mf.engine.gyro_bias_radps})
     metrics["fusion_frames_per_s"] = fusion_fps
     return non_finite_to_none(metrics), base, mf
 

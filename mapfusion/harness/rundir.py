@@ -6,7 +6,8 @@ import csv
 import json
 from pathlib import Path
 
-from mapfusion.formats import matrices_to_tum, write_gps_csv, write_imu_csv, write_tum, yaw_to_quaternion
+from mapfusion.formats import (matrices_to_tum, write_gps_csv, write_imu_csv, write_tum, write_wheel_csv,
+                               yaw_to_quaternion)
 
 from sim.drive import DriveResult, Track
 from sim.scenario import Scenario
@@ -58,7 +59,8 @@ def write_truth(run_dir: str | Path, sc: Scenario, drive: DriveResult) -> Path:
 
 
 def write_sensors(run_dir: str | Path, sensors: SensorData, projection) -> Path:
-    """Write ``odometry.tum`` (the odometry's own frame, from identity), ``gps.csv`` and ``imu.csv``,
+    """Write ``odometry.tum`` (the odometry's own frame, from identity), ``gps.csv``, ``imu.csv`` (and
+    ``wheel.csv`` where the odometry kind has a wheel),
     plus ``sensor_events.json`` (re-initialisations, map resets, rain episodes, dropped frames)."""
     d = Path(run_dir)
     d.mkdir(parents=True, exist_ok=True)
@@ -69,6 +71,8 @@ def write_sensors(run_dir: str | Path, sensors: SensorData, projection) -> Path:
     lat, lon = projection.to_geo(g.x_m, g.y_m)
     write_gps_csv(d / "gps.csv", g.t_s, lat, lon, g.alt_m, g.sigma_m)
     write_imu_csv(d / "imu.csv", sensors.imu.t_s, sensors.imu.accel_mps2, sensors.imu.gyro_radps)
+    if sensors.wheel is not None:
+        write_wheel_csv(d / "wheel.csv", sensors.wheel.t_s, sensors.wheel.speed_mps)
     events = {
         "events": [{"t": t, "kind": k} for t, k in odo.events],
         "dropped_frames": int(odo.dropped.sum()),
