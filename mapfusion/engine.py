@@ -137,10 +137,9 @@ class MapFusion:
             return
         track, motion = self.track, self._motion
         if track.t and t <= track.t[-1] + motion.same_frame_s(track.t[-1]):
-            if motion.same_frame_s(track.t[-1]):  # wheel + gyro made this frame already: the odometry is back
-                motion.last_odometry_t = track.t[-1]
-                return
-            raise EngineError(f"odometry time {t} does not increase (previous {track.t[-1]})")
+            if not motion.rejoin(track.t[-1]):  # (True: wheel + gyro made this frame; the odometry is back)
+                raise EngineError(f"odometry time {t} does not increase (previous {track.t[-1]})")
+            return
         step = motion.odometry_step(track.t[-1], t, rel, self.scale) if track.t and motion.active else None
         self._append(t, self._jumps.bridge(t, rel, self.scale, self.counters) if step is None else step)
         motion.last_odometry_t = t
@@ -196,6 +195,7 @@ class MapFusion:
             fit = self.initialiser.refit_with_fix(self.track, t, x, y, sigma)
             if fit is not None:
                 self.alignment = dataclasses.replace(self._aligned, scale=fit.scale, scale_sigma=fit.scale_sigma)
+            self.alignment = self._motion.rescale(self._aligned)  # a calibrated wheel knows the scale better
         self._gps.waiting.append((t, x, y, None if alt is None else float(alt), sigma))
         self._flush_gps()
 
@@ -238,10 +238,11 @@ class MapFusion:
 
     # ------------------------------------------------------------------ initialisation
     def _try_initialise(self) -> None:
+        self._motion.restate(self.track, self.initialiser.scale_estimator)  # frames made before the wheel calibrated
         a = self.initialiser.try_align(self.track)
         if a is None:
             return
-        self.alignment = a
+        self.alignment = self._motion.rescale(a)
         self.initialised_at = self.track.t[-1]
         self._smoother = Smoother(self.cfg, self.track, self.counters, self._between,
                                   lambda: self._to_map(self.track.raw[0]))
@@ -259,7 +260,7 @@ class MapFusion:
             if fit is not None:
                 log.info("scale refined by the initialisation fit: %.4f → %.4f (± %.4f)", self.scale, fit.scale,
                          fit.scale_sigma)
-                self.alignment = fit
+                self.alignment = self._motion.rescale(fit)
         batch = solve_initial_batch(self.cfg, self.track, self._aligned, self.initialiser.fixes,
                                     lambda k: self._between(k, before_init=True), self.counters)
         sm = self._sm

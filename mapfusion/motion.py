@@ -19,6 +19,7 @@ alone where the odometry has no frames or jumped. Nothing here knows the factor 
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import logging
 import math
 from collections import deque
@@ -31,6 +32,7 @@ from .config import FusionConfig
 from .errors import InputError
 from .geometry import wrap_angle
 from .metrics import umeyama
+from .track import Alignment, Track
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +45,10 @@ class MotionInputError(InputError):
 HISTORY_S = 120.0
 #: A standstill: the wheel reads less than this (m/s) over the whole step.
 STANDSTILL_MPS = 0.05
+#: A bias sample's σ (the odometry's and the gyro's yaw noise over a frame), and the prior information
+#: on (gyro bias rad/s, odometry yaw drift rad/m): wide on the bias, about a real VO's drift on c.
+BIAS_SAMPLE_SIGMA_RAD = 2e-4
+BIAS_PRIOR_INFO = np.diag([1.0 / 0.05**2, 1.0 / 1e-5**2])
 #: The wheel scale fit needs this many fixes spanning this far (m) on the dead-reckoned track.
 SCALE_FIT_MIN_FIXES, SCALE_FIT_MIN_EXTENT_M = 20, 100.0
 
@@ -106,7 +112,8 @@ class WheelGyro:
         self.scale = 1.0
         self.scale_sigma = cfg.wheel_scale_sigma
         self.bias_radps = 0.0
-        self._bias_sum = self._bias_weight = 0.0
+        self._bias_weight = 0.0  # seconds of samples (with forgetting)
+        self._bias_info, self._bias_vec = np.zeros((2, 2)), np.zeros(2)
         self._dr_t: deque[float] = deque()  # the dead-reckoned track (wheel metres, bias removed)
         self._dr_xy: deque[tuple[float, float]] = deque()
         self._dr_pose = (0.0, 0.0, 0.0)
@@ -160,22 +167,30 @@ class WheelGyro:
         return float(np.sum(0.5 * (w[1:] + w[:-1]) * np.diff(times)))
 
     # ------------------------------------------------------------------ calibration
-    def observe_yaw(self, t0: float, t1: float, reference_dyaw_rad: float | None) -> None:
-        """A bias sample: the gyro's yaw change over [t0, t1] beyond a trusted one (the odometry's), or
-        beyond zero at a standstill (``reference_dyaw_rad`` None: used only if the wheel stands)."""
+    def observe_yaw(self, t0: float, t1: float, reference_dyaw_rad: float | None, distance_m: float = 0.0) -> None:
+        """A bias sample: the gyro's yaw change over [t0, t1] beyond a trusted one (the odometry's, which
+        drives ``distance_m``), or beyond zero at a standstill (``reference_dyaw_rad`` None: used only if
+        the wheel stands).
+
+        The excess is b·dt + c·ds: the gyro's bias b per second and the odometry's own yaw drift c per
+        metre (which a bias learnt from it alone would inherit: at 28 m/s a VO drifting 8e-6 rad/m looks
+        like a gyro bias of 2e-4 rad/s). Both are fitted by least squares with exponential forgetting;
+        a weak prior on c keeps b determined at constant speed (then the two cannot be told apart)."""
         dt = t1 - t0
         if dt <= 0:
             return
         if reference_dyaw_rad is None:
             if float(np.max(np.abs(self.wheel.at(np.array([t0, 0.5 * (t0 + t1), t1]))))) >= STANDSTILL_MPS:
                 return
-            reference_dyaw_rad = 0.0
+            reference_dyaw_rad, distance_m = 0.0, 0.0
         excess = wrap_angle(self.raw_yaw_change(t0, t1) - reference_dyaw_rad)
         forget = math.exp(-dt / self.cfg.gyro_bias_time_constant_s)
-        self._bias_sum = self._bias_sum * forget + excess
+        row = np.array([dt, distance_m])
+        self._bias_info = self._bias_info * forget + np.outer(row, row) / BIAS_SAMPLE_SIGMA_RAD**2
+        self._bias_vec = self._bias_vec * forget + row * excess / BIAS_SAMPLE_SIGMA_RAD**2
         self._bias_weight = self._bias_weight * forget + dt
         if self._bias_weight >= 1.0:
-            self.bias_radps = self._bias_sum / self._bias_weight
+            self.bias_radps = float(np.linalg.solve(self._bias_info + BIAS_PRIOR_INFO, self._bias_vec)[0])
 
     def advance(self, t0: float, t1: float, step: PlanarStep, dyaw_rad: float | None = None) -> None:
         """Extend the dead-reckoned track (unit wheel scale) by a frame's wheel step, for the scale fit;
@@ -277,6 +292,9 @@ class MotionFusion:
     the engine must make a frame itself (no odometry frame for ``wheel_frame_gap_s``)."""
 
     MIN_RATIO_STEP_M, MIN_RATIOS = 0.2, 5
+    #: The odometry's scale against the calibrated wheel: over agreeing steps, forgetting with this
+    #: time constant (s), once they cover MIN_SCALE_DISTANCE_M.
+    SCALE_TIME_CONSTANT_S, MIN_SCALE_DISTANCE_M = 120.0, 100.0
 
     def __init__(self, cfg: FusionConfig, counters) -> None:
         self.cfg = cfg
@@ -285,6 +303,9 @@ class MotionFusion:
         self.last_odometry_t: float | None = None  # the odometry's own latest frame
         self._first_sample_t: float | None = None
         self._ratios: deque[float] = deque(maxlen=51)  # wheel metres per odometry unit, step by step
+        self._before_init: dict[float, tuple[float, gtsam.Pose3]] = {}  # t → (units per wheel metre, step made)
+        self._restated: tuple[float, float] | None = None
+        self._wheel_m = self._odometry_units = 0.0  # over agreeing steps, with forgetting (uncalibrated metres)
 
     @property
     def active(self) -> bool:
@@ -304,11 +325,33 @@ class MotionFusion:
         made = self.active and (self.last_odometry_t is None or self.last_odometry_t < t_last_frame - 1e-9)
         return 1e-6 if made else 0.0
 
+    def rejoin(self, t_last_frame: float) -> bool:
+        """An odometry frame at (or within :meth:`same_frame_s` of) the engine's last frame: True, and the
+        odometry's next step counts from there, when wheel and gyro made that frame; else False."""
+        if not self.same_frame_s(t_last_frame):
+            return False
+        self.last_odometry_t = t_last_frame
+        return True
+
     def metres_per_unit(self, scale: float | None) -> float | None:
         """The odometry's scale: the engine's once initialised, else the wheel's median ratio."""
         if scale:
             return scale
         return float(np.median(self._ratios)) if len(self._ratios) >= self.MIN_RATIOS else None
+
+    def odometry_scale(self) -> tuple[float, float] | None:
+        """Metres per odometry unit from the calibrated wheel (and its σ), or None until the wheel's scale
+        is known to a quarter of its prior σ over enough distance."""
+        wg = self.wg
+        if wg.scale_sigma > 0.25 * self.cfg.wheel_scale_sigma or self._wheel_m < self.MIN_SCALE_DISTANCE_M:
+            return None
+        scale = wg.scale * self._wheel_m / self._odometry_units
+        return scale, scale * wg.scale_sigma
+
+    def rescale(self, a: Alignment) -> Alignment:
+        """The alignment with the wheel's odometry scale where it has one (see :meth:`odometry_scale`)."""
+        s = self.odometry_scale() if self.active else None
+        return a if s is None else dataclasses.replace(a, scale=s[0], scale_sigma=s[1])
 
     def odometry_step(self, t_prev: float, t: float, rel: gtsam.Pose3, scale: float | None) -> gtsam.Pose3 | None:
         """The raw step into the odometry's frame at ``t`` (the engine's previous frame at ``t_prev``), or
@@ -329,7 +372,10 @@ class MotionFusion:
             s_xy, s_yaw = _odometry_sigmas(self.cfg, raw_len * u)
             odo = PlanarStep(rel.x() * u, rel.y() * u, rel.rotation().yaw(), s_xy, s_xy, s_yaw)
             if agrees(self.cfg, odo, wheel):
-                self.wg.observe_yaw(t_prev, t, odo.dyaw_rad)
+                self.wg.observe_yaw(t_prev, t, odo.dyaw_rad, wheel.length_m)
+                forget = math.exp(-(t - t_prev) / self.SCALE_TIME_CONSTANT_S)
+                self._wheel_m = self._wheel_m * forget + wheel.length_m / self.wg.scale
+                self._odometry_units = self._odometry_units * forget + raw_len
                 fused = fuse_steps(odo, wheel)
                 self.wg.advance(t_prev, t, wheel, fused.dyaw_rad)
                 return _as_raw(fused, u, rel)
@@ -358,4 +404,36 @@ class MotionFusion:
         self.wg.observe_yaw(t_prev, t, None)
         self.wg.advance(t_prev, t, wheel)
         self.counters.wheel_frames += 1
-        return _as_raw(wheel, self.metres_per_unit(scale) or 1.0, None)
+        return self._made(t, wheel, self.metres_per_unit(scale) or 1.0, scale)
+
+    def _made(self, t: float, wheel: PlanarStep, u: float, scale: float | None) -> gtsam.Pose3:
+        """A raw step from wheel and gyro alone; one made before initialisation is remembered, so that
+        the wheel's later calibration can restate it (:meth:`restate`)."""
+        rel = _as_raw(wheel, u, None)
+        if scale is None:
+            self._before_init[t] = (u / self.wg.scale, rel)
+        return rel
+
+    def restate(self, track: Track, scale_estimator) -> None:
+        """Before initialisation, the frames wheel and gyro made restated with the wheel's latest
+        calibration and the odometry's latest scale (a drive that starts in a tunnel makes its first
+        frames before either is known: 2% of a kilometre is 20 m); the scale windows' positions with them."""
+        wg = self.wg
+        if not self._before_init or wg.scale_sigma > 0.25 * self.cfg.wheel_scale_sigma:
+            return
+        s = self.odometry_scale()
+        ratio = float(np.median(self._ratios)) * wg.scale if len(self._ratios) >= self.MIN_RATIOS else wg.scale
+        m_now = s[0] if s is not None else ratio
+        if (wg.scale, m_now) == self._restated:
+            return
+        self._restated = (wg.scale, m_now)
+        steps = {}
+        for k, t in track.t.held():
+            made = self._before_init.get(t)
+            if made is not None:
+                f = made[0] * wg.scale / m_now
+                r = made[1]
+                steps[k] = gtsam.Pose3(r.rotation(), gtsam.Point3(r.x() * f, r.y() * f, r.z()))
+        positions = track.restate_steps(steps)
+        if positions is not None:
+            scale_estimator.replace_positions(positions)

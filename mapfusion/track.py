@@ -126,6 +126,20 @@ class Track:
         self.online.append(None)
         return self._odo_abs.translation()
 
+    def restate_steps(self, steps: dict[int, gtsam.Pose3]) -> list[np.ndarray] | None:
+        """Replace the relative motions of some frames and recompose every raw pose after the first of
+        them; returns every held frame's raw (unlevelled) position, or None when nothing changed."""
+        if not steps:
+            return None
+        k0 = min(steps)
+        for k, rel in steps.items():
+            self.rel[k] = rel
+        for k in range(max(k0, self.first + 1), len(self)):
+            self.raw[k] = self.raw[k - 1].compose(self.rel[k])
+        unlevel = self.level_rot.inverse() if self.level_rot is not None else gtsam.Pose3()
+        self._odo_abs = unlevel.compose(self.raw[len(self) - 1])
+        return [unlevel.compose(p).translation() for _, p in self.raw.held()]
+
     @property
     def first(self) -> int:
         """The oldest frame still held (0 unless :meth:`drop_before` was called)."""
