@@ -49,6 +49,9 @@ STANDSTILL_MPS = 0.05
 #: on (gyro bias rad/s, odometry yaw drift rad/m): wide on the bias, about a real VO's drift on c.
 BIAS_SAMPLE_SIGMA_RAD = 2e-4
 BIAS_PRIOR_INFO = np.diag([1.0 / 0.05**2, 1.0 / 1e-5**2])
+#: Above this |acceleration| (m/s², from the wheel's speed over half a second) a wet road may slip the
+#: wheels: the calibration takes the odometry's distance there (the sensor model slips above 1 m/s²).
+SLIP_FREE_ACCEL_MPS2 = 0.7
 #: The wheel scale fit needs this many fixes spanning this far (m) on the dead-reckoned track.
 SCALE_FIT_MIN_FIXES, SCALE_FIT_MIN_EXTENT_M = 20, 100.0
 
@@ -159,6 +162,11 @@ class WheelGyro:
         return PlanarStep(dx, dy, dyaw, max(along, 1e-4), max(d * cfg.wheel_lateral_sigma_per_m, 1e-4),
                           max(cfg.gyro_sigma_radps * (t1 - t0), 1e-6))
 
+    def accel_mps2(self, t: float) -> float:
+        """|Acceleration| from the wheel's speed over the half second up to t."""
+        v = self.wheel.at(np.array([t - 0.5, t]))
+        return abs(float(v[1] - v[0])) / 0.5
+
     def raw_yaw_change(self, t0: float, t1: float) -> float:
         """The gyro's integrated yaw (bias not removed) from t0 to t1."""
         times = np.array([t0, *self.gyro.t[bisect.bisect_right(self.gyro.t, t0):bisect.bisect_left(self.gyro.t, t1)],
@@ -192,10 +200,12 @@ class WheelGyro:
         if self._bias_weight >= 1.0:
             self.bias_radps = float(np.linalg.solve(self._bias_info + BIAS_PRIOR_INFO, self._bias_vec)[0])
 
-    def advance(self, t0: float, t1: float, step: PlanarStep, dyaw_rad: float | None = None) -> None:
+    def advance(self, t0: float, t1: float, step: PlanarStep, dyaw_rad: float | None = None,
+                distance_m: float | None = None) -> None:
         """Extend the dead-reckoned track (unit wheel scale) by a frame's wheel step, for the scale fit;
-        ``dyaw_rad``: a better turn than the gyro's (the step fused with the odometry)."""
-        d = step.length_m / self.scale
+        ``dyaw_rad``: a better turn than the gyro's (the step fused with the odometry); ``distance_m``: a
+        better distance in uncalibrated wheel metres (the odometry's, where the wheels may slip)."""
+        d = step.length_m / self.scale if distance_m is None else distance_m
         turn = step.dyaw_rad if dyaw_rad is None else dyaw_rad
         x, y, yaw = self._dr_pose
         mid = yaw + 0.5 * turn
@@ -373,17 +383,28 @@ class MotionFusion:
             odo = PlanarStep(rel.x() * u, rel.y() * u, rel.rotation().yaw(), s_xy, s_xy, s_yaw)
             if agrees(self.cfg, odo, wheel):
                 self.wg.observe_yaw(t_prev, t, odo.dyaw_rad, wheel.length_m)
-                forget = math.exp(-(t - t_prev) / self.SCALE_TIME_CONSTANT_S)
-                self._wheel_m = self._wheel_m * forget + wheel.length_m / self.wg.scale
-                self._odometry_units = self._odometry_units * forget + raw_len
                 fused = fuse_steps(odo, wheel)
-                self.wg.advance(t_prev, t, wheel, fused.dyaw_rad)
+                self.wg.advance(t_prev, t, wheel, fused.dyaw_rad, self._slip_free(t_prev, t, wheel, raw_len))
                 return _as_raw(fused, u, rel)
             self.counters.odometry_vetoed += 1
             log.info("t = %.2f s: the odometry's step disagrees with wheel + gyro by %.2f m: replaced",
                      t, math.hypot(odo.dx_m - wheel.dx_m, odo.dy_m - wheel.dy_m))
         self.wg.advance(t_prev, t, wheel)
-        return _as_raw(wheel, u, None)
+        return self._made(t, wheel, u, scale)
+
+    def _slip_free(self, t_prev: float, t: float, wheel: PlanarStep, raw_len: float) -> float | None:
+        """At a steady speed the step's wheel and odometry distances enter their ratio (the odometry's
+        scale against the wheel); under hard acceleration or braking, where a wet road slips the wheels,
+        the odometry's distance times that ratio is the step's wheel distance for the calibration fit
+        (returned; None: the wheel's own)."""
+        if wheel.length_m < self.MIN_RATIO_STEP_M:  # slow: the odometry's noise is most of its step
+            return None
+        if self.wg.accel_mps2(t) < SLIP_FREE_ACCEL_MPS2:
+            forget = math.exp(-(t - t_prev) / self.SCALE_TIME_CONSTANT_S)
+            self._wheel_m = self._wheel_m * forget + wheel.length_m / self.wg.scale
+            self._odometry_units = self._odometry_units * forget + raw_len
+            return None
+        return raw_len * self._wheel_m / self._odometry_units if self._odometry_units > 0 else None
 
     def frame_due(self, t_last: float | None, period_s: float) -> float | None:
         """The time of a frame wheel and gyro should make now (the odometry silent), or None."""

@@ -129,7 +129,7 @@ def simulate_wheel(truth: Truth, p: WheelParams, rng: np.random.Generator,
     """Wheel speed at ``rate_hz`` from the truth: the distance it drives each step over the step's
     duration (so the samples integrate to the truth's path length), times (1 + the run's scale
     error), over-read under hard acceleration or braking in rain, plus white noise, rounded to
-    ``quantum_mps`` and never negative."""
+    ``quantum_mps``, never negative, and zero while the vehicle stands."""
     if p.scale_error_max < p.scale_error_min:
         raise ValueError(f"wheel: scale_error_max ({p.scale_error_max}) is below scale_error_min ({p.scale_error_min})")
     t_truth = np.asarray(truth.t_s, float)
@@ -148,7 +148,8 @@ def simulate_wheel(truth: Truth, p: WheelParams, rng: np.random.Generator,
     v = true_v * (1.0 + error) * (1.0 + over) + rng.normal(0.0, p.speed_noise_mps, len(t))
     if p.quantum_mps > 0:
         v = np.round(v / p.quantum_mps) * p.quantum_mps
-    return WheelOutput(t, np.maximum(v, 0.0), float(error))
+    # a standing wheel gives no pulses: exactly zero, never noise clipped to a creeping positive speed
+    return WheelOutput(t, np.where(true_v > 0.0, np.maximum(v, 0.0), 0.0), float(error))
 
 
 # ----------------------------------------------------------------------------- IMU

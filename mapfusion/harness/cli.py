@@ -319,7 +319,7 @@ def import_bag_cmd(
     """A bag's odometry, GPS, IMU and wheel speed as files: odometry.tum (body convention), gps.csv,
     imu.csv, wheel.csv (t,speed_mps)."""
     from mapfusion.bags import read_bag
-    from mapfusion.formats import matrices_to_tum, write_gps_csv, write_imu_csv, write_tum
+    from mapfusion.formats import matrices_to_tum, write_gps_csv, write_imu_csv, write_tum, write_wheel_csv
 
     _check_output_dir(out, "--out", [bag])
     try:
@@ -328,7 +328,7 @@ def import_bag_cmd(
         _fail(str(exc))
     out.mkdir(parents=True, exist_ok=True)
     if data.wheel is not None:
-        (out / "wheel.csv").write_text("t,speed_mps\n" + "".join(f"{t:.6f},{v:.4f}\n" for t, v in zip(*data.wheel)))
+        write_wheel_csv(out / "wheel.csv", *data.wheel)
     xyz, q = matrices_to_tum(data.poses)
     write_tum(out / "odometry.tum", data.t_s, xyz, q, header=f"{odometry_topic} of {bag}")
     if data.gps is not None:
@@ -431,15 +431,19 @@ def fuse(
                                                  "odometry's published pose covariance, where it grows, sets the "
                                                  "engine's odometry_sigma_per_m (its growth per metre driven).")] = True,
     wheel_topic: Annotated[Optional[str], typer.Option("--wheel-topic", help="The bag's wheel speed "
-                                                       "(geometry_msgs/TwistStamped): read and checked; the engine "
-                                                       "does not fuse wheel speed yet.")] = None,
+                                                       "(geometry_msgs/TwistStamped, twist.linear.x m/s): fused with "
+                                                       "--imu-topic's yaw rate as a second motion source.")] = None,
     out_bag: Annotated[Optional[Path], typer.Option("--out-bag", help="Also write the online estimate (nav_msgs/Odometry, "
                                                     "frame map, child base_link) and the map priors (a MarkerArray) "
                                                     "as a bag: NAME.bag is ROS 1, any other name a ROS 2 bag folder "
                                                     "(MCAP storage).")] = None,
     gps: Annotated[Optional[Path], typer.Option("--gps", help="GPS CSV (t,lat,lon,alt,sigma_m).")] = None,
-    imu: Annotated[Optional[Path], typer.Option("--imu", help="IMU CSV (t,ax,ay,az,gx,gy,gz); read and checked. "
-                                                "The engine does not use it: VIO users pass their VIO's poses.")] = None,
+    imu: Annotated[Optional[Path], typer.Option("--imu", help="IMU CSV (t,ax,ay,az,gx,gy,gz; body frame x forward, "
+                                                "y left, z up): with --wheel its gz is the yaw rate fused; alone it "
+                                                "is read and checked only.")] = None,
+    wheel: Annotated[Optional[Path], typer.Option("--wheel", help="Wheel-speed CSV (t,speed_mps): with --imu a "
+                                                  "second motion source beside the odometry (bridges VO outages, "
+                                                  "replaces VO jumps).")] = None,
     config: Annotated[Optional[Path], typer.Option("--config", help="TOML with a [mapfusion] table (FusionConfig).")] = None,
     odometry_format: Annotated[str, typer.Option("--odometry-format", help="tum | kitti")] = "tum",
     times: Annotated[Optional[Path], typer.Option("--times", help="Timestamps, one a line (KITTI times.txt).")] = None,
@@ -456,7 +460,7 @@ def fuse(
     from .pipeline import RecordedInputs, fuse_recorded_to_files
 
     given = {"--map": map_path, "--odometry": odometry, "--gps": gps, "--imu": imu, "--config": config, "--times": times,
-             "--bag": bag}
+             "--bag": bag, "--wheel": wheel}
     _check_output_file(out, "--out", given)
     if smoothed is not None:
         _check_output_file(smoothed, "--smoothed", {**given, "--out": out})
@@ -469,8 +473,11 @@ def fuse(
     if bag is not None:
         if not odometry_topic:
             _fail("--bag needs --odometry-topic (a nav_msgs/Odometry topic)")
-        if gps is not None or imu is not None or times is not None:
-            _fail("--bag takes its GPS and IMU from --gps-topic and --imu-topic, not --gps, --imu or --times")
+        if gps is not None or imu is not None or times is not None or wheel is not None:
+            _fail("--bag takes its GPS, IMU and wheel speed from --gps-topic, --imu-topic and --wheel-topic, not --gps, "
+                  "--imu, --wheel or --times")
+        if wheel_topic and not imu_topic:
+            _fail("--wheel-topic needs --imu-topic (its gyro gives the yaw rate)")
         _fuse_bag(map_path, bag, odometry_topic, gps_topic, imu_topic, gps_until_s, config, no_map, out, smoothed,
                   out_bag, wheel_topic, bag_covariance)
         return
@@ -482,7 +489,9 @@ def fuse(
         except ValueError as exc:
             raise InputError(f"{exc}; --odometry-format is tum or kitti, --odometry-frame is body or camera") from None
         cfg = load_fusion_config(config, **({"use_map": False} if no_map else {}))
-        inputs = RecordedInputs(map_path, odometry, fmt, frame, times, gps, gps_until_s, imu)
+        if wheel is not None and imu is None:
+            _fail("--wheel needs --imu (its gyro gives the yaw rate)")
+        inputs = RecordedInputs(map_path, odometry, fmt, frame, times, gps, gps_until_s, imu, wheel)
         with _FrameBar() as bar:
             if out_bag is None:  # streamed, in flat memory
                 eng, n = fuse_recorded_to_files(inputs, cfg, out, smoothed, f" ({'no map' if no_map else 'with map'})",
@@ -552,6 +561,10 @@ def _fuse_summary(eng, n: int, out: Path) -> None:
                   f"(rejected {c.gps_rejected}: {c.gps_rejected_gate} by the gate, {c.gps_rejected_time} for their time, "
                   f"{c.gps_rejected_invalid} invalid), odometry priors {c.odometry_priors}, "
                   f"recoveries {c.recoveries}, odometry jumps bridged {c.odometry_jumps}")
+    if c.wheel_frames or c.odometry_vetoed or eng.wheel_scale != 1.0:
+        console.print(f"wheel + gyro: {c.wheel_frames} frames made where the odometry had none, {c.odometry_vetoed} "
+                      f"odometry steps replaced; wheel scale {eng.wheel_scale:.4f}, gyro bias "
+                      f"{eng.gyro_bias_radps:.5f} rad/s")
 
 
 class _FrameBar(_Bar):

@@ -219,26 +219,40 @@ class RecordedInputs:
     times: Path | None = None
     gps: Path | None = None
     gps_until_s: float | None = None  # fixes only this long from the first odometry frame
-    imu: Path | None = None  # read and checked; the engine does not use it yet
+    imu: Path | None = None  # its gyro's z axis is the yaw rate fused with --wheel; without a wheel only checked
+    wheel: Path | None = None  # wheel speed (t,speed_mps), fused with the IMU's yaw rate (issue 18)
 
 
 def fuse_recorded(inputs: RecordedInputs, cfg: FusionConfig, progress=None, on_frame=None) -> FusionResult:
     """The engine on recorded files (InputError / FormatError on bad input); ``on_frame(engine)``
     after every frame."""
     t_odo, poses = read_odometry(inputs.odometry, inputs.odometry_format, inputs.times, inputs.odometry_frame)
-    road, fixes = _recorded_map_and_gps(inputs, float(t_odo[0]))
-    return fuse(road, t_odo, poses, fixes, cfg, progress=progress, on_frame=on_frame)
+    road, fixes, motion = _recorded_map_and_gps(inputs, t_odo[[0, -1]])
+    return fuse(road, t_odo, poses, fixes, cfg, progress=progress, on_frame=on_frame, motion=motion)
 
 
-def _recorded_map_and_gps(inputs: RecordedInputs, t0_s: float):
+def _recorded_map_and_gps(inputs: RecordedInputs, span_s: np.ndarray):
     """The road map and the fixes (up to --gps-until-s), checked against each other; the IMU file
-    read through and checked."""
-    from mapfusion.formats import check_imu_csv, read_gps_csv
+    read through and checked, and with a wheel file both as the engine's second motion source
+    (refused when their times miss the odometry's ``span_s``, first and last)."""
+    from mapfusion.formats import FormatError, check_imu_csv, read_gps_csv, read_imu_csv, read_wheel_csv
 
     fixes = read_gps_csv(inputs.gps) if inputs.gps is not None else None
-    if inputs.imu is not None:
+    motion = None
+    if inputs.wheel is not None:
+        if inputs.imu is None:
+            raise FormatError(f"{inputs.wheel}: wheel speed needs the IMU's yaw rate (--imu)")
+        t_w, v = read_wheel_csv(inputs.wheel)
+        t_i, _, gyro = read_imu_csv(inputs.imu)
+        for path, t in ((inputs.wheel, t_w), (inputs.imu, t_i)):
+            if len(t) < 2 or t[-1] <= span_s[0] or t[0] >= span_s[1]:
+                raise FormatError(f"{path}: its times ({t[0]:.3f}–{t[-1]:.3f} s) miss the odometry's "
+                                  f"({span_s[0]:.3f}–{span_s[1]:.3f} s)")
+        motion = MotionSamples(t_w, v, t_i, gyro[:, 2])
+    elif inputs.imu is not None:
         check_imu_csv(inputs.imu)
-    return _map_and_fixes(inputs.map, fixes, t0_s, inputs.gps_until_s, f"{inputs.gps}: the GPS fixes")
+    road, fixes = _map_and_fixes(inputs.map, fixes, float(span_s[0]), inputs.gps_until_s, f"{inputs.gps}: the GPS fixes")
+    return road, fixes, motion
 
 
 def _map_and_fixes(map_name: str, fixes: GpsFixes | None, t0_s: float, gps_until_s: float | None, what: str):
@@ -290,7 +304,7 @@ def fuse_recorded_to_files(inputs: RecordedInputs, cfg: FusionConfig, out: Path,
     from mapfusion.replay import fuse_streaming, odometry_times
 
     t_all = odometry_times(inputs.odometry, inputs.odometry_format, inputs.times)  # checks the whole file
-    road, fixes = _recorded_map_and_gps(inputs, float(t_all[0]))
+    road, fixes, motion = _recorded_map_and_gps(inputs, t_all[[0, -1]])
     online = _StreamedTum(out, f"Map-Fusion online estimate{label}")
     smooth = _StreamedTum(smoothed, "Map-Fusion smoothed trajectory") if smoothed is not None else None
     writers = [w for w in (online, smooth) if w is not None]
@@ -302,7 +316,7 @@ def fuse_recorded_to_files(inputs: RecordedInputs, cfg: FusionConfig, out: Path,
 
     try:
         eng = fuse_streaming(road, inputs.odometry, inputs.odometry_format, inputs.times, inputs.odometry_frame,
-                             fixes, cfg, on_final, progress, t_all)
+                             fixes, cfg, on_final, progress, t_all, motion)
         for w in writers:
             w.flush()
     except BaseException:
@@ -373,7 +387,7 @@ class BagInputs:
     gps_topic: str | None = None
     imu_topic: str | None = None
     gps_until_s: float | None = None
-    wheel_topic: str | None = None  # read and checked; the engine does not fuse wheel speed yet (issue 18)
+    wheel_topic: str | None = None  # fused with the IMU topic's yaw rate (issue 18)
     use_covariance: bool = True  # the odometry's published pose covariance sets odometry_sigma_per_m
 
 
@@ -389,9 +403,12 @@ def fuse_bag(inputs: BagInputs, cfg: FusionConfig, progress=None):
             cfg = dataclasses.replace(cfg, odometry_sigma_per_m=s)
     road, fixes = _map_and_fixes(inputs.map, data.gps, float(data.t_s[0]), inputs.gps_until_s,
                                  f"{inputs.bag}: the GPS fixes of {inputs.gps_topic}")
+    motion = None
+    if data.wheel is not None and data.imu is not None:  # wheel speed with the IMU's yaw rate (issue 18)
+        motion = MotionSamples(data.wheel[0], data.wheel[1], data.imu[0], data.imu[2][:, 2])
     sigmas: list[float] = []
     res = fuse(road, data.t_s, data.poses, fixes, cfg, progress=progress,
-               on_frame=lambda e: sigmas.append(e.position_sigma_m))
+               on_frame=lambda e: sigmas.append(e.position_sigma_m), motion=motion)
     return res, data, np.asarray(sigmas)  # res.engine.cfg holds the σ the covariance set
 
 
