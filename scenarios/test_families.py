@@ -115,3 +115,15 @@ def test_real_odometry_the_map_never_makes_a_drive_worse(request):
 def test_real_odometry_30_percent_better_on_average(request):
     assert _reduction(_real(request)) >= 0.30
 
+
+
+def test_rain_tunnel_with_wheel_and_gyro_is_never_lost_and_within_5_m_in_the_zones(request):
+    """Issue 18: with wheel speed and gyro beside the VO (odometry vo+wheel), no run de-localises,
+    every run has estimates inside the GPS-denied, visually degraded zones (the estimate never stops
+    where the camera fails), and their mean error there is at most 5 m."""
+    rows = [r for r in _ok(request, "rain-tunnel") if r["odometry"] == "vo+wheel"]
+    assert rows, "the family has no vo+wheel runs"
+    assert not [r["scenario"] for r in rows if r["delocalized_mapfusion"]]
+    zones = [r["tunnel_rmse_mapfusion_m"] for r in rows]
+    assert all(z is not None and np.isfinite(z) for z in zones), zones
+    assert np.mean(zones) <= 5.0

@@ -139,7 +139,9 @@ def simulate_wheel(truth: Truth, p: WheelParams, rng: np.random.Generator,
     true_v = step_v[k] if len(step_v) else np.zeros_like(t)
     # the acceleration that slips a wheel: of the speed smoothed over a second (SUMO steps its speed)
     w = max(1, int(round(1.0 / float(np.median(np.diff(t_truth)))))) if len(t_truth) > 1 else 1
-    smooth = np.convolve(step_v, np.ones(w) / w, mode="same") if len(step_v) else step_v
+    # (edges held, not zero-padded: a drive's ends are no hard braking)
+    smooth = np.convolve(np.pad(step_v, (w // 2, w - 1 - w // 2), mode="edge"), np.ones(w) / w, mode="valid") \
+        if len(step_v) else step_v
     step_a = np.gradient(smooth, t_truth[:-1]) if len(step_v) > 1 else np.zeros_like(step_v)
     accel = np.abs(step_a[k]) if len(step_v) else np.zeros_like(t)
     error = rng.uniform(p.scale_error_min, p.scale_error_max) * (1.0 if rng.random() < 0.5 else -1.0)

@@ -118,3 +118,22 @@ def synthetic_truth(kind: str = "straight", n: int = 600, dt_s: float = 0.1, spe
         flag[denied[0]:denied[1] + 1] = True
     return TruthTrack(t, x, y, np.zeros(n), (yaw + np.pi) % (2 * np.pi) - np.pi, flag.copy(), flag.copy())
 
+
+
+def wheel_gyro_samples(truth, scale_error: float = 0.0, bias_radps: float = 0.0, speed_noise_mps: float = 0.0,
+                       gyro_noise_radps: float = 0.0, seed: int = 0, wheel_hz: float = 50.0, gyro_hz: float = 100.0):
+    """Wheel speed and yaw rate sampled from a :class:`TruthTrack` (a polyline driven at each step's
+    constant speed and turn rate): ((t, speed), (t, yaw rate)), with a scale error, a gyro bias and
+    white noise; noise-free they integrate back to the truth's path length and heading."""
+    rng = np.random.default_rng(seed)
+    t = np.asarray(truth.t_s, float)
+    dt = np.diff(t)
+    v = np.hypot(np.diff(truth.x_m), np.diff(truth.y_m)) / dt
+    w = np.diff(np.unwrap(truth.yaw_rad)) / dt
+    tw = np.arange(t[0], t[-1], 1.0 / wheel_hz)
+    tg = np.arange(t[0], t[-1], 1.0 / gyro_hz)
+    iw = np.clip(np.searchsorted(t, tw, side="right") - 1, 0, len(v) - 1)
+    ig = np.clip(np.searchsorted(t, tg, side="right") - 1, 0, len(w) - 1)
+    speed = np.maximum(v[iw] * (1.0 + scale_error) + rng.normal(0.0, speed_noise_mps, len(tw)) * (v[iw] > 0), 0.0)
+    rate = w[ig] + bias_radps + rng.normal(0.0, gyro_noise_radps, len(tg))
+    return (tw, speed), (tg, rate)

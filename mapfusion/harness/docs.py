@@ -30,7 +30,7 @@ def _table(cls: type) -> list[str]:
 def configuration_markdown() -> str:
     """The configuration reference page."""
     from sim.scenario import GpsConfig, ImuParams, RouteConfig, Scenario, TrafficConfig, WeatherConfig
-    from sim.sensors import OdometryParams
+    from sim.sensors import OdometryParams, WheelParams
 
     out = ["# Configuration reference", "",
            "Generated from the code's own field documentation by `python -m mapfusion.harness.docs`; a test",
@@ -43,7 +43,10 @@ def configuration_markdown() -> str:
     out += _table(FusionConfig)
     for title, cls in (("Scenario (top level)", Scenario), ("`[traffic]`", TrafficConfig), ("`[route]`", RouteConfig),
                        ("`[weather]`", WeatherConfig), ("`[gps]`", GpsConfig), ("`[imu]`", ImuParams),
-                       ("`[odometry]`: the preset fields a scenario may replace", OdometryParams)):
+                       ("`[odometry]`: the preset fields a scenario may replace", OdometryParams),
+                       ("`[wheel]`: the wheel-speed sensor of odometry kinds vo+wheel and vio+wheel (`vehicle = "
+                        "\"car\" | \"truck\"` picks the preset; any field below replaces the preset's; the gyro is "
+                        "the `[imu]`'s)", WheelParams)):
         out += ["", f"## {title}", ""] + _table(cls)
     return "\n".join(out) + "\n"
 

@@ -52,6 +52,8 @@ def _tum(rows: list[str]) -> str:
 
 _OK_ROWS = [f"{0.1 * i:.1f} {i * 0.12:.3f} 0 0 0 0 0 1" for i in range(50)]
 _GPS_HEAD = "t,lat,lon,alt,sigma_m\n"
+_WHEEL_HEAD = "t,speed_mps\n"
+_IMU = "t,ax,ay,az,gx,gy,gz\n" + "".join(f"{0.01 * i:.2f},0,0,9.81,0,0,0\n" for i in range(9000))
 
 # (id, argv, files, needles): files are written to the case's folder {d} before the call
 CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
@@ -207,6 +209,21 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
      {"g.csv": _GPS_HEAD + "".join(f"{t:.1f},24.9,60.2{t:03.0f},,2\n" for t in range(0, 60, 1))}, ["g.csv"]),
     ("fuse-other-city", ["fuse", "--map", "kotka", "--odometry", "{in}/odometry.tum", "--gps", "{in}/gps.csv",
                          "--out", "{d}/e.tum"], {}, ["gps.csv"]),
+    ("fuse-wheel-no-imu", ["fuse", "--map", "{in}/map.osm", "--odometry", "{in}/odometry.tum", "--wheel", "{d}/w.csv",
+                           "--out", "{d}/e.tum"], {"w.csv": _WHEEL_HEAD + "0,1\n"}, ["--wheel", "--imu"]),
+    ("fuse-wheel-negative", ["fuse", "--map", "{in}/map.osm", "--odometry", "{in}/odometry.tum", "--wheel", "{d}/w.csv",
+                             "--imu", "{d}/i.csv", "--out", "{d}/e.tum"],
+     {"w.csv": _WHEEL_HEAD + "0,1\n0.02,-1\n", "i.csv": _IMU}, ["w.csv:3", "speed_mps"]),
+    ("fuse-wheel-header", ["fuse", "--map", "{in}/map.osm", "--odometry", "{in}/odometry.tum", "--wheel", "{d}/w.csv",
+                           "--imu", "{d}/i.csv", "--out", "{d}/e.tum"],
+     {"w.csv": "t,v\n0,1\n", "i.csv": _IMU}, ["w.csv:1"]),
+    ("fuse-wheel-another-time", ["fuse", "--map", "{in}/map.osm", "--odometry", "{in}/odometry.tum", "--wheel",
+                                 "{d}/w.csv", "--imu", "{d}/i.csv", "--out", "{d}/e.tum"],
+     {"w.csv": _WHEEL_HEAD + "".join(f"{1000 + 0.02 * i:.2f},1\n" for i in range(100)), "i.csv": _IMU},
+     ["w.csv", "miss"]),
+    ("fuse-bag-wheel-no-imu", ["fuse", "--map", "{in}/map.osm", "--bag", "{d}/b.bag", "--odometry-topic", "/odom",
+                               "--wheel-topic", "/wheel", "--out", "{d}/e.tum"], {"b.bag": b"not a bag"},
+     ["--wheel-topic", "--imu-topic"]),
     # ---- evaluate
     ("evaluate-truth-missing", ["evaluate", "--truth", "{d}/none.tum", "--estimate", "{in}/odometry.tum"], {},
      ["none.tum"]),
@@ -220,6 +237,11 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
                                  "--delocalization-m", "0"], {}, ["--delocalization-m"]),
     # ---- run, sweep, tune
     ("run-missing", ["run", "{d}/none.toml", "--out", "{d}/o"], {}, ["none.toml"]),
+    ("run-wheel-unknown", ["run", "{d}/s.toml", "--out", "{d}/o"],
+     {"s.toml": GOOD_SCENARIO + '[odometry]\nkind = "vo+wheel"\n[wheel]\nbogus = 1\n'}, ["s.toml", "wheel.bogus"]),
+    ("run-wheel-range", ["run", "{d}/s.toml", "--out", "{d}/o"],
+     {"s.toml": GOOD_SCENARIO + '[odometry]\nkind = "vo+wheel"\n[wheel]\nscale_error_min = 0.05\n'},
+     ["s.toml", "wheel.scale_error_max"]),
     ("run-out-file", ["run", "{in}/scenario.toml", "--out", "{d}/o"], {"o": "a file"}, ["--out"]),
     ("run-out-is-input", ["run", "{d}/s.toml", "--out", "{d}/s.toml"], {"s.toml": GOOD_SCENARIO}, ["--out"]),
     ("run-workers", ["run", "{in}/scenario.toml", "--out", "{d}/o", "--workers", "0"], {}, ["--workers"]),

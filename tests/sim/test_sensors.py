@@ -265,3 +265,74 @@ def test_gps_fix_times_are_the_first_times_after_each_tick(steps, mode, rate, wi
             ticks = np.concatenate([ticks, np.arange(window, t[-1] + 1e-9, interval)])
     want = sorted({next(i for i in range(len(t)) if t[i] >= k - 1e-9) for k in ticks if k <= t[-1] + 1e-9})
     assert gps_fix_times(t, cfg).tolist() == want
+
+
+# ----------------------------------------------------------------------------- wheel speed (issue 18)
+def _wheel(truth, weather=WeatherKind.clear, seed=0, **changes):
+    from sim.sensors import WheelParams, simulate_wheel
+
+    return simulate_wheel(truth, dataclasses.replace(WheelParams(), **changes), np.random.default_rng(seed), weather)
+
+
+def _path_m(truth) -> float:
+    return float(np.sum(np.hypot(np.diff(truth.x_m), np.diff(truth.y_m))))
+
+
+@given(seed=st.integers(0, 10_000), kind=st.sampled_from(["straight", "circle", "random"]),
+       error=st.floats(0.0, 0.05))
+@settings(max_examples=25, deadline=None)
+def test_noise_free_wheel_speed_integrates_to_the_path_length_times_its_scale(seed, kind, error):
+    truth = synthetic_truth(kind, n=800, speed_mps=12.0, seed=seed)
+    w = _wheel(truth, seed=seed, scale_error_min=error, scale_error_max=error, speed_noise_mps=0.0, quantum_mps=0.0)
+    assert abs(w.scale_error) == pytest.approx(error)
+    # left Riemann sum: each sample holds for one period (the truth steps its speed every 0.1 s)
+    driven = float(np.sum(w.speed_mps[:-1] * np.diff(w.t_s)))
+    assert driven == pytest.approx(_path_m(truth) * (1.0 + w.scale_error), rel=1e-3)
+
+
+def test_wheel_scale_error_is_drawn_in_its_range_with_either_sign():
+    truth = synthetic_truth("straight", n=50)
+    errors = np.array([_wheel(truth, seed=s).scale_error for s in range(200)])
+    assert np.all((np.abs(errors) >= 0.005) & (np.abs(errors) <= 0.02))
+    assert (errors > 0).mean() == pytest.approx(0.5, abs=0.15)
+
+
+def test_wheel_noise_quantisation_and_standstill():
+    truth = synthetic_truth("straight", n=600, speed_mps=10.0)
+    w = _wheel(truth, scale_error_min=0.0, scale_error_max=0.0, speed_noise_mps=0.05, quantum_mps=0.0)
+    assert np.std(w.speed_mps - 10.0) == pytest.approx(0.05, rel=0.1)
+    q = _wheel(truth, quantum_mps=0.05)
+    assert np.allclose(q.speed_mps / 0.05, np.round(q.speed_mps / 0.05), atol=1e-9)
+    stopped = synthetic_truth("straight", n=100, speed_mps=0.0)
+    assert np.all(_wheel(stopped, speed_noise_mps=0.5).speed_mps == 0.0)  # no pulses, no creeping
+
+
+def test_wheels_slip_only_in_rain_and_only_under_hard_acceleration():
+    n = 600
+    t = np.arange(n) * 0.1
+    v = np.clip(3.0 * t, 0.0, 15.0)  # 3 m/s² up to 15 m/s, then steady
+    x = np.concatenate(([0.0], np.cumsum(v[:-1] * 0.1)))
+    z = np.zeros(n)
+    from tests.helpers import TruthTrack
+
+    truth = TruthTrack(t, x, z, z, z, z.astype(bool), z.astype(bool))
+    quiet = dict(scale_error_min=0.0, scale_error_max=0.0, speed_noise_mps=0.0, quantum_mps=0.0)
+    clear, rain, heavy = (_wheel(truth, wx, **quiet) for wx in (WeatherKind.clear, WeatherKind.rain, WeatherKind.heavy_rain))
+    accel = (clear.t_s > 0.6) & (clear.t_s < 4.4)
+    steady = clear.t_s > 7.0
+    over_rain = rain.speed_mps[accel] / clear.speed_mps[accel] - 1.0
+    assert np.median(over_rain) == pytest.approx(0.02 * (3.0 - 1.0), rel=0.1)  # slip_per_mps2 × (a − 1 m/s²)
+    assert np.median(heavy.speed_mps[accel] / clear.speed_mps[accel] - 1.0) == pytest.approx(2 * np.median(over_rain), rel=0.05)
+    assert np.allclose(rain.speed_mps[steady], clear.speed_mps[steady])
+
+
+def test_the_wheel_leaves_every_other_sensor_as_it_was():
+    """A vo+wheel run has the very VO, IMU and GPS of the vo run of the same seed: its own seeded stream."""
+    from sim.sensors import synthesise
+
+    truth = synthetic_truth("random", n=1500, speed_mps=10.0, seed=4)
+    a = synthesise(scenario_from_dict({"seed": 7, "odometry": {"kind": "vo"}}, "t", resolve=False), truth)
+    b = synthesise(scenario_from_dict({"seed": 7, "odometry": {"kind": "vo+wheel"}}, "t", resolve=False), truth)
+    assert a.wheel is None and b.wheel is not None
+    assert np.array_equal(a.odometry.poses, b.odometry.poses) and np.array_equal(a.imu.gyro_radps, b.imu.gyro_radps)
+    assert np.array_equal(a.gps.x_m, b.gps.x_m)
