@@ -789,7 +789,8 @@ class FusionConfig:
     )
     wheel_gate_deg: float = param(
         3.0, "See wheel_gate_m: the yaw part of the gate.", unit="deg", min=0.0, exclusive_min=True, max=180.0,
-        source="issue 18: a 0.1 s step's yaw agrees within hundredths of a degree; a VO re-initialisation turns by degrees",
+        source="issue 18: a 0.1 s step's yaw agrees within hundredths of a degree; a VO re-initialisation turns by "
+        "degrees",
     )
     wheel_frame_gap_s: float = param(
         0.3,

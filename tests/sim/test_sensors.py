@@ -317,12 +317,14 @@ def test_wheels_slip_only_in_rain_and_only_under_hard_acceleration():
 
     truth = TruthTrack(t, x, z, z, z, z.astype(bool), z.astype(bool))
     quiet = dict(scale_error_min=0.0, scale_error_max=0.0, speed_noise_mps=0.0, quantum_mps=0.0)
-    clear, rain, heavy = (_wheel(truth, wx, **quiet) for wx in (WeatherKind.clear, WeatherKind.rain, WeatherKind.heavy_rain))
+    clear, rain, heavy = (_wheel(truth, wx, **quiet)
+                          for wx in (WeatherKind.clear, WeatherKind.rain, WeatherKind.heavy_rain))
     accel = (clear.t_s > 0.6) & (clear.t_s < 4.4)
     steady = clear.t_s > 7.0
     over_rain = rain.speed_mps[accel] / clear.speed_mps[accel] - 1.0
     assert np.median(over_rain) == pytest.approx(0.02 * (3.0 - 1.0), rel=0.1)  # slip_per_mps2 × (a − 1 m/s²)
-    assert np.median(heavy.speed_mps[accel] / clear.speed_mps[accel] - 1.0) == pytest.approx(2 * np.median(over_rain), rel=0.05)
+    over_heavy = heavy.speed_mps[accel] / clear.speed_mps[accel] - 1.0
+    assert np.median(over_heavy) == pytest.approx(2 * np.median(over_rain), rel=0.05)
     assert np.allclose(rain.speed_mps[steady], clear.speed_mps[steady])
 
 
