@@ -17,8 +17,9 @@ pytestmark = pytest.mark.sumo
 
 
 @pytest.fixture(scope="module")
-def table():
-    rows = summarise(calibration_runs(maps=("helsinki", "kotka"), seeds=(1, 2, 3, 4)))
+def table(request):
+    rows = summarise(calibration_runs(maps=("helsinki", "kotka"), seeds=(1, 2, 3, 4),
+                                      workers=request.config.getoption("--scenario-workers")))
     print("\nGPS-initialised odometry alone (paper ranges: clear vo 1–5 m, clear vio 1–6 m, rain vo 8–20 m, "
           "heavy rain + tunnel often > 20 m)")
     for r in rows:

@@ -258,6 +258,14 @@ def plan_runs(scenarios: Iterable[Scenario], results_path: str | Path) -> tuple[
     return todo, [sc.name for sc in todo if sc.name in finished]
 
 
+def _preload(fn: Callable, scheduler: str | None) -> None:
+    """Import the pipeline (GTSAM, SUMO, the engine: about a second) once in this process, so that every
+    forked worker inherits it instead of importing it again per run (issue 21). Dask workers are
+    separate processes: nothing to share."""
+    if scheduler is None and fn is run_one:
+        from . import pipeline  # noqa: F401
+
+
 def run_many(scenarios: Iterable[Scenario], workers: int = 2, out_dir: str | Path | None = None, plot: bool = False,
              on_result: Callable[[dict], None] | None = None, scheduler: str | None = None,
              fn: Callable = run_one) -> list[dict]:
@@ -276,6 +284,7 @@ def run_many(scenarios: Iterable[Scenario], workers: int = 2, out_dir: str | Pat
         rows(job, [{"scenario": job[0].name, "seed": job[0].seed, **err}])
 
     jobs = [(sc, None if out_dir is None else str(out_dir), plot) for sc in scenarios]
+    _preload(fn, scheduler)
     run_tasks(jobs, fn, workers=workers, on_rows=rows, on_failure=failed, scheduler=scheduler)
     return [by_name[sc.name] for sc in scenarios]
 
@@ -299,6 +308,7 @@ def run_logged(scenarios: Iterable[Scenario], out_dir: str | Path, workers: int 
     def failed(job, err):
         finished(job, [{"scenario": job[0].name, "seed": job[0].seed, "scenario_sha256": job[0].content_hash(), **err}])
 
+    _preload(fn, scheduler)
     run_tasks([(sc, str(out_dir), plot) for sc in todo], fn, workers=workers, on_rows=finished,
               on_failure=failed, scheduler=scheduler)
     current = {(sc.name, sc.content_hash()) for sc in scenarios}

@@ -95,10 +95,34 @@ class CalibrationRun:
 
 
 def calibration_runs(maps=("helsinki", "kotka"), seeds=(1, 2, 3, 4), cases=CASES, min_route_m: float = 2000.0,
-                     duration_s: float = 900.0, use_engine: bool = True) -> list[CalibrationRun]:
+                     duration_s: float = 900.0, use_engine: bool = True, workers: int = 2) -> list[CalibrationRun]:
     """Drive every map × seed once per GPS-denied zone setting, then synthesise every case on it.
-    The baseline is the engine with map priors off (``use_engine``), else the similarity stand-in."""
+    The baseline is the engine with map priors off (``use_engine``), else the similarity stand-in.
+    Each map × seed is one task of ``workers`` processes (issue 21: the fixture ran them one by one);
+    the runs come back in map, seed, case order whatever finished first. A failed task raises."""
     from mapfusion.maps import resolve_map
+    from mapfusion.roadmap import RoadMap
+
+    from sim.network import build_network
+
+    from .batch import run_tasks
+
+    tasks = []
+    for name in maps:
+        path = str(resolve_map(name))
+        RoadMap.from_osm(path), build_network(path)  # built (and cached) here, not by tasks at the same time
+        tasks += [(name, path, seed, tuple(cases), min_route_m, duration_s, use_engine) for seed in seeds]
+    done: dict[tuple, list[CalibrationRun]] = {}
+    failures: list[str] = []
+    run_tasks(tasks, _calibration_task, workers=workers, on_rows=lambda task, rows: done.__setitem__(task, rows),
+              on_failure=lambda task, err: failures.append(f"{task[0]} seed {task[2]}: {err['error']}"))
+    if failures:
+        raise RuntimeError("calibration drives failed: " + "; ".join(failures))
+    return [run for task in tasks for run in done[task]]
+
+
+def _calibration_task(task) -> list[CalibrationRun]:
+    """One map × seed: the drives (one per zone setting) and every case synthesised on them."""
     from mapfusion.roadmap import RoadMap
 
     from sim.drive import run_drive
@@ -106,28 +130,25 @@ def calibration_runs(maps=("helsinki", "kotka"), seeds=(1, 2, 3, 4), cases=CASES
     from sim.scenario import OdometryConfig, OdometryKind, WeatherConfig, WeatherKind, scenario_from_dict
     from sim.sensors import Truth, synthesise, under_bridges
 
-    runs = []
-    for name in maps:
-        path = resolve_map(name)
-        road, net = RoadMap.from_osm(path), build_network(path)
-        for seed in seeds:
-            drives = {}
-            for weather, kind, zone in cases:
-                if zone not in drives:
-                    sc = scenario_from_dict({"name": f"cal-{name}-{seed}", "map": str(path), "seed": seed,
-                                             "duration_s": duration_s, "min_route_m": min_route_m,
-                                             "tunnels": [] if zone is None else [{"start_m": zone[0], "end_m": zone[1]}]},
-                                            "calibration")
-                    d = run_drive(sc, road, net)
-                    bridges = under_bridges(road, d.ego.x_m, d.ego.y_m, d.ego.osm_way, sc.gps.bridge_lane_width_m)
-                    drives[zone] = (sc, d, bridges)
-                sc, d, bridges = drives[zone]
-                sc = sc.replace(weather=WeatherConfig(kind=WeatherKind(weather)), odometry=OdometryConfig(kind=OdometryKind(kind)))
-                truth = Truth.from_track(d.ego, bridges, sc.gps)
-                sensors = synthesise(sc, truth)
-                res = odometry_only_ate(truth, sensors.odometry, sensors.gps, sc.gps.init_window_s,
-                                        road if use_engine else None)
-                runs.append(CalibrationRun(name, seed, weather, kind, zone is not None, res))
+    name, path, seed, cases, min_route_m, duration_s, use_engine = task
+    road, net = RoadMap.from_osm(path), build_network(path)
+    runs, drives = [], {}
+    for weather, kind, zone in cases:
+        if zone not in drives:
+            sc = scenario_from_dict({"name": f"cal-{name}-{seed}", "map": path, "seed": seed,
+                                     "duration_s": duration_s, "min_route_m": min_route_m,
+                                     "tunnels": [] if zone is None else [{"start_m": zone[0], "end_m": zone[1]}]},
+                                    "calibration")
+            d = run_drive(sc, road, net)
+            bridges = under_bridges(road, d.ego.x_m, d.ego.y_m, d.ego.osm_way, sc.gps.bridge_lane_width_m)
+            drives[zone] = (sc, d, bridges)
+        sc, d, bridges = drives[zone]
+        sc = sc.replace(weather=WeatherConfig(kind=WeatherKind(weather)), odometry=OdometryConfig(kind=OdometryKind(kind)))
+        truth = Truth.from_track(d.ego, bridges, sc.gps)
+        sensors = synthesise(sc, truth)
+        res = odometry_only_ate(truth, sensors.odometry, sensors.gps, sc.gps.init_window_s,
+                                road if use_engine else None)
+        runs.append(CalibrationRun(name, seed, weather, kind, zone is not None, res))
     return runs
 
 
