@@ -4,12 +4,14 @@ Every car has both (ESC needs them) and neither cares about rain or darkness. :c
 buffers the samples and integrates them into planar steps (distance along the body's x axis from
 the wheel's speed, yaw from the gyro's rate less its bias). It keeps two calibrations:
 
-- the **gyro bias**: the yaw rate the gyro reads beyond the odometry's over frames where the two
-  agree (or beyond zero while the wheel says the vehicle stands still), averaged with exponential
-  forgetting (``gyro_bias_time_constant_s``);
+- the **gyro bias**: the gyro's turn beyond the odometry's over frames where the two agree, fitted as
+  b·dt + c·ds (its bias per second beside the odometry's own yaw drift per metre), or beyond zero
+  while the wheel says the vehicle stands still; least squares with exponential forgetting
+  (``gyro_bias_time_constant_s``);
 - the **wheel scale** (true metres per wheel metre): a similarity fit of the wheel + gyro
-  dead-reckoned track to the GPS fixes of the last ``wheel_scale_window_s``, with its σ from the
-  fit's residuals; until a fit is more certain than ``wheel_scale_sigma`` it stays 1.
+  dead-reckoned track to the GPS fixes of the last ``wheel_scale_window_s`` (where the wheels may
+  slip, the odometry's distance), with its σ from the fit's residuals; until a fit is more certain
+  than ``wheel_scale_sigma`` it stays 1. A calibrated wheel also gives the odometry's scale.
 
 The engine asks for the step between two frame times (:meth:`WheelGyro.step`), checks the
 odometry's own step against it (:func:`agrees`) and fuses the two (:func:`fuse_steps`), or uses it
