@@ -141,12 +141,15 @@ class WheelGyro:
         return self.wheel.covers(t0, t1, tol) and self.gyro.covers(t0, t1, tol)
 
     # ------------------------------------------------------------------ integration
+    def _grid(self, t0: float, t1: float) -> np.ndarray:
+        """t0, the gyro's sample times strictly between, and t1: where the rates are integrated."""
+        gt = self.gyro.t
+        return np.array([t0, *gt[bisect.bisect_right(gt, t0):bisect.bisect_left(gt, t1)], t1])
+
     def _integrate(self, t0: float, t1: float, scale: float) -> tuple[float, float, float]:
         """(forward, left, turn) from t0 to t1 in the body frame at t0: the wheel's distance turned by
         the gyro's yaw, midpoint rule on the union of the gyro's sample times."""
-        gt = self.gyro.t
-        inner = gt[bisect.bisect_right(gt, t0):bisect.bisect_left(gt, t1)]
-        grid = np.array([t0, *inner, t1]) if inner else np.array([t0, t1])
+        grid = self._grid(t0, t1)
         w = self.gyro.at(grid) - self.bias_radps
         v = self.wheel.at(grid) * scale
         dt = np.diff(grid)
@@ -171,8 +174,7 @@ class WheelGyro:
 
     def raw_yaw_change(self, t0: float, t1: float) -> float:
         """The gyro's integrated yaw (bias not removed) from t0 to t1."""
-        times = np.array([t0, *self.gyro.t[bisect.bisect_right(self.gyro.t, t0):bisect.bisect_left(self.gyro.t, t1)],
-                          t1])
+        times = self._grid(t0, t1)
         w = self.gyro.at(times)
         return float(np.sum(0.5 * (w[1:] + w[:-1]) * np.diff(times)))
 
@@ -444,9 +446,8 @@ class MotionFusion:
         wg = self.wg
         if not self._before_init or wg.scale_sigma > 0.25 * self.cfg.wheel_scale_sigma:
             return
-        s = self.odometry_scale()
-        ratio = float(np.median(self._ratios)) * wg.scale if len(self._ratios) >= self.MIN_RATIOS else wg.scale
-        m_now = s[0] if s is not None else ratio
+        s, ratio = self.odometry_scale(), self.metres_per_unit(None)  # (the latter in uncalibrated wheel metres)
+        m_now = s[0] if s is not None else (ratio or 1.0) * wg.scale
         if (wg.scale, m_now) == self._restated:
             return
         self._restated = (wg.scale, m_now)
