@@ -222,6 +222,42 @@ def test_fuse_recovers_after_losing_track_in_a_tunnel(tmp_path):
     assert err[late].max() < 10.0, err[late].max()
 
 
+@pytest.mark.sumo
+def test_fuse_with_wheel_and_gyro_keeps_an_estimate_through_the_tunnel(tmp_path):
+    """The same drive with the car's wheel speed and gyro (issue 18): simulate writes wheel.csv, and
+    `fuse --wheel --imu` has an estimate at every frame inside the 700 m tunnel, where the VO alone has
+    none, within 10 m of the truth there."""
+    from mapfusion.formats import read_gps_csv, read_tum, read_wheel_csv
+    from mapfusion.metrics import associate
+
+    sc = tmp_path / "s.toml"
+    sc.write_text('name = "t"\nmap = "tunnel"\nseed = 3\nduration_s = 150.0\n[route]\nedges = ["1", "3"]\n'
+                  '[gps]\nmode = "continuous"\n[odometry]\nkind = "vo+wheel"\n')
+    assert runner.invoke(app, ["simulate", str(sc), "--out", str(tmp_path / "run")]).exit_code == 0
+    run = tmp_path / "run"
+    tw, _ = read_wheel_csv(run / "wheel.csv")
+    base = ["fuse", "--map", "tunnel", "--odometry", str(run / "odometry.tum"), "--gps", str(run / "gps.csv")]
+    alone = runner.invoke(app, base + ["--out", str(tmp_path / "vo.tum")])
+    wheel = runner.invoke(app, base + ["--wheel", str(run / "wheel.csv"), "--imu", str(run / "imu.csv"),
+                                       "--out", str(tmp_path / "wheel.tum")])
+    assert alone.exit_code == 0 and wheel.exit_code == 0, wheel.output
+    assert "wheel + gyro" in wheel.stdout and "wheel + gyro" not in alone.stdout
+    gps = read_gps_csv(run / "gps.csv")
+    i = int(np.argmax(np.diff(gps.t_s)))
+    t_in, t_out = gps.t_s[i] + 2.0, gps.t_s[i + 1] - 2.0  # inside the tunnel: no fix, no VO frame
+    tt, xt, _ = read_tum(run / "truth.tum")
+    assert abs(len(tw) - 50.0 * (tt[-1] - tt[0])) <= 2  # the car preset's 50 Hz over the whole drive
+    inside = (tt > t_in) & (tt < t_out)
+    assert inside.sum() > 100
+    for name, want in (("vo.tum", 0.0), ("wheel.tum", 0.95)):
+        te, xe, _ = read_tum(tmp_path / name)
+        ia, ib = associate(te, tt[inside])
+        assert len(ia) >= want * inside.sum() and (want or len(ia) == 0), (name, len(ia))
+        if want:
+            err = np.hypot(*(xe[ia, :2] - xt[inside][ib, :2]).T)
+            assert err.max() < 10.0, err.max()
+
+
 # ----------------------------------------------------------------------------- run, plot, demo
 CONTRACT_FILES = ("scenario.toml", "truth.tum", "truth.csv", "odometry.tum", "gps.csv", "imu.csv",
                   "estimate_odometry.tum", "estimate_mapfusion.tum", "metrics.json", "plot.png")
