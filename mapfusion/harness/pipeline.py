@@ -60,12 +60,6 @@ def _evaluate(res: FusionResult, truth: Truth, estimator: Estimator, deloc_m: fl
     return estimator_metrics(estimator, a, delocalized(a, deloc_m), on, tun, rpe)
 
 
-def _nearest(t_ref: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Index of the nearest time in ``t_ref`` (increasing) for each of ``t``."""
-    i = np.clip(np.searchsorted(t_ref, t), 1, len(t_ref) - 1)
-    return np.where(np.abs(t_ref[i - 1] - t) <= np.abs(t_ref[i] - t), i - 1, i)
-
-
 def motion_of(sensors: SensorData) -> MotionSamples | None:
     """The wheel speed and the IMU's yaw rate (gyro z) for the engine, where the odometry kind has a wheel."""
     if sensors.wheel is None:
@@ -140,9 +134,10 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
         # recorded drive has no such truth: null)
         metrics["match_rate"] = metrics["match_rate_road"] = None
         if sim.drive is not None:
-            # the truth frame of each engine frame (wheel + gyro add frames where the odometry has none)
-            frames = sensors.odometry.frame_index if motion is None else _nearest(truth.t_s, mf.t_s)
-            matched = np.asarray(mf.engine.matched_way)
+            frames, matched = sensors.odometry.frame_index, np.asarray(mf.engine.matched_way)
+            if motion is not None:  # wheel + gyro add frames where the odometry has none: by time, then
+                ia, frames = associate(mf.t_s, truth.t_s)
+                matched = matched[ia]
             true_way = sim.drive.ego.osm_way[frames]
             sel = matched >= 0
             # the contract's match rate (the very way SUMO drives on), and the same counting a way that
