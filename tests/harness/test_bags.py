@@ -131,6 +131,32 @@ def test_a_wheel_speed_topic_becomes_wheel_csv(run_dir, tmp_path):
     assert abs(float(rows[-1].split(",")[1]) - 12.5) < 1e-4
 
 
+def test_a_bags_wheel_and_imu_topics_are_fused_as_the_files_are(run_dir, tmp_path, capsys):
+    """Issue 18: `fuse --bag --wheel-topic --imu-topic` gives the estimate of `fuse --wheel --imu` on the
+    same samples, and both use them (the summary's wheel + gyro line)."""
+    from mapfusion.formats import read_wheel_csv, write_wheel_csv
+
+    tt, xt, _ = read_tum(run_dir / "truth.tum")
+    speed = np.append(np.hypot(*np.diff(xt[:, :2], axis=0).T) / np.diff(tt), 0.0)
+    write_wheel_csv(tmp_path / "wheel.csv", tt, speed)
+    wheel = read_wheel_csv(tmp_path / "wheel.csv")  # the bag gets the file's very numbers
+    t, xyz, q = read_tum(run_dir / "odometry.tum")
+    bag = write_bag(tmp_path / "b", BagKind.sqlite3, (t, tum_to_matrices(xyz, q)), read_gps_csv(run_dir / "gps.csv"),
+                    read_imu_csv(run_dir / "imu.csv"), wheel=wheel)
+    from_files, from_bag = tmp_path / "files.tum", tmp_path / "bag.tum"
+    assert main(["fuse", "--map", "grid", "--odometry", str(run_dir / "odometry.tum"), "--gps",
+                 str(run_dir / "gps.csv"), "--wheel", str(tmp_path / "wheel.csv"), "--imu", str(run_dir / "imu.csv"),
+                 "--out", str(from_files)]) == 0
+    assert "wheel + gyro" in capsys.readouterr().out
+    assert main(["fuse", "--map", "grid", "--bag", str(bag), "--odometry-topic", "/odom", "--gps-topic", "/gps/fix",
+                 "--imu-topic", "/imu", "--wheel-topic", "/wheel_speed", "--out", str(from_bag)]) == 0
+    assert "wheel + gyro" in capsys.readouterr().out
+    ta, xa, _ = read_tum(from_files)
+    tb, xb, _ = read_tum(from_bag)
+    assert len(ta) > 1000 and np.array_equal(ta, tb)
+    assert np.max(np.abs(xa - xb)) <= 1e-9
+
+
 def test_the_odometrys_covariance_sets_its_sigma_per_metre(run_dir, tmp_path, capsys):
     from mapfusion.bags import sigma_per_m_from_covariance
 
