@@ -23,9 +23,13 @@ from . import factors
 from .config import FusionConfig, PriorTarget, RoadTracking
 from .counters import Counters
 from .hypotheses import RoadHypotheses, Step, candidates
-from .matcher import Match, map_pose, match, match_candidates
+from .matcher import Match, lateral_bound_ok, map_pose, match, match_candidates, match_range
 from .roadmap import RoadMap
 
+
+#: Edges of at most this many way-points are scanned whole for the tracked road's best way-point
+#: (cheaper than a radius query); a longer one's are taken from the query.
+EDGE_SCAN_MAX = 1024
 
 #: Floor of the band prior's σ across the road: the moment-matched factor of an estimate far
 #: outside the band is next to rigid, and GTSAM's linear algebra should not see a σ of micrometres.
@@ -46,6 +50,8 @@ class MapAssociation:
         self.counters = counters
         self.edge = -1  # the road edge the vehicle was last matched to
         self._mask = np.zeros(len(road), dtype=bool)
+        if cfg.use_map:
+            _ = road.cells  # the map's cell index, built with the engine rather than inside its first frame
         self._robust = factors.robust_kernel(cfg)
         self.hmm = RoadHypotheses(road, cfg) if cfg.road_tracking is RoadTracking.hmm else None
         self._moved_m = math.inf  # odometry distance since the last filter step (inf: step now)
@@ -67,21 +73,27 @@ class MapAssociation:
         assert self.hmm is not None
         cfg, road = self.cfg, self.road
         x, y, yaw = pred.x(), pred.y(), pred.rotation().yaw()
-        near = road.query_radius(x, y, cfg.search_radius_m)
+        radius, w = cfg.search_radius_m, cfg.angle_weight_m_per_deg
+        near = None
         self._moved_m += moved_m
-        if self._moved_m >= cfg.hmm_step_m:
+        if self._moved_m >= cfg.hmm_step_m:  # (the query only here: between steps the tracked edge suffices)
+            near = road.query_radius(x, y, radius)
             step_m = 0.0 if self._moved_m == math.inf else self._moved_m
-            self._last = self.hmm.step(candidates(road, near, x, y, yaw, cfg.angle_weight_m_per_deg), step_m)
+            self._last = self.hmm.step(candidates(road, near, x, y, yaw, w), step_m)
             self._moved_m = 0.0
             self._watch_lost(self._last, step_m)
         st = self._last
         if st is None or st.best is None:
             return None, False
-        on_edge = near[road.edge[near] == st.best.edge]
-        if on_edge.size == 0:  # moved off that road since the last step
-            return None, False
-        m = match(road, x, y, yaw, cfg.search_radius_m, cfg.angle_weight_m_per_deg, candidates=on_edge)
-        return m, st.posterior >= cfg.hmm_min_posterior
+        edge = st.best.edge
+        a, b = int(road.edge_start[edge]), int(road.edge_end[edge])
+        if b - a <= EDGE_SCAN_MAX:
+            m = match_range(road, a, b, x, y, yaw, radius, w)  # None: moved off that road since the last step
+        else:
+            near = road.query_radius(x, y, radius) if near is None else near
+            on_edge = near[road.edge[near] == edge]
+            m = match(road, x, y, yaw, radius, w, candidates=on_edge) if on_edge.size else None
+        return m, m is not None and st.posterior >= cfg.hmm_min_posterior
 
     def _watch_lost(self, st: Step, moved_m: float) -> None:
         """Lost after ``hmm_lost_after_m`` of unexplained steps; found again at the next explained one."""
@@ -100,21 +112,25 @@ class MapAssociation:
         last one, unless an unrestricted match is better by more than ``continuity_slack_m``)."""
         cfg, road = self.cfg, self.road
         x, y, yaw = pred.x(), pred.y(), pred.rotation().yaw()
+        if not (cfg.match_continuity and self.edge >= 0):
+            best = match(road, x, y, yaw, cfg.search_radius_m, cfg.angle_weight_m_per_deg)
+            if best is not None and best.edge >= 0:
+                self.edge = best.edge
+            return best
         near = road.query_radius(x, y, cfg.search_radius_m)
         best = match(road, x, y, yaw, cfg.search_radius_m, cfg.angle_weight_m_per_deg, candidates=near)
         if best is None:
             return None
-        if cfg.match_continuity and self.edge >= 0:
-            neigh = road.neighbourhood(self.edge)
-            self._mask[neigh] = True  # a scratch mask: O(|neighbourhood| + |near|), no sorting
-            allowed = near[self._mask[near]]
-            self._mask[neigh] = False
-            m = match(road, x, y, yaw, cfg.search_radius_m, cfg.angle_weight_m_per_deg, candidates=allowed) \
-                if allowed.size else None
-            if m is not None and m.cost <= best.cost + cfg.continuity_slack_m:
-                best = m
-            else:
-                self.counters.match_fallbacks += 1
+        neigh = road.neighbourhood(self.edge)
+        self._mask[neigh] = True  # a scratch mask: O(|neighbourhood| + |near|), no sorting
+        allowed = near[self._mask[near]]
+        self._mask[neigh] = False
+        m = match(road, x, y, yaw, cfg.search_radius_m, cfg.angle_weight_m_per_deg, candidates=allowed) \
+            if allowed.size else None
+        if m is not None and m.cost <= best.cost + cfg.continuity_slack_m:
+            best = m
+        else:
+            self.counters.match_fallbacks += 1
         if best.edge >= 0:
             self.edge = best.edge
         return best
@@ -155,8 +171,10 @@ class MapAssociation:
             return None, None
         self.counters.matches += 1
         width = m.lanes * self.cfg.lane_width_m
+        if self._since_prior_m < self.cfg.prior_spacing_m or lateral_bound_ok(m, pred.matrix(), width):
+            return m, None  # (most frames: on the road; R_t is built only when a prior may follow)
         r_pose, lateral = map_pose(m, pred)
-        if lateral <= width or self._since_prior_m < self.cfg.prior_spacing_m:
+        if lateral <= width:
             return m, None
         # a confident road hypothesis replaces the single-frame gates: its heading is a valid
         # measurement even when the estimate's is far off (heading recovery), and a split posterior

@@ -45,13 +45,14 @@ class EngineError(InputError):
     """A measurement the engine cannot take (wrong shape, time going backwards)."""
 
 
-def _as_pose3(pose) -> gtsam.Pose3:
+def _as_pose3(pose) -> tuple[gtsam.Pose3, bool]:
+    """The pose as a gtsam.Pose3, and whether it is finite (checked on the array when one is given)."""
     if isinstance(pose, gtsam.Pose3):
-        return pose
+        return pose, _finite_pose(pose)
     m = np.asarray(pose, dtype=float)
     if m.shape != (4, 4):
         raise EngineError(f"relative pose must be a gtsam.Pose3 or a 4×4 array, got shape {m.shape}")
-    return gtsam.Pose3(m)
+    return gtsam.Pose3(m), math.isfinite(float(m[:3].sum()))  # (a NaN or an infinity makes the sum one)
 
 
 def _gps_sigma(sigma_m: float | None, default_m: float) -> float:
@@ -131,8 +132,8 @@ class MapFusion:
 
     def add_odometry(self, t: float, relative_pose) -> None:
         """One odometry frame: the motion since the previous frame (see the class docstring)."""
-        t, rel = float(t), _as_pose3(relative_pose)
-        if not (math.isfinite(t) and _finite_pose(rel)):
+        (rel, finite), t = _as_pose3(relative_pose), float(t)
+        if not (math.isfinite(t) and finite):
             self.counters.odometry_rejected += 1
             return
         track, motion = self.track, self._motion

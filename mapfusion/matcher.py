@@ -127,13 +127,63 @@ def match(
     Raises ValueError naming the argument for a non-finite x, y or yaw, or a radius ≤ 0.
     """
     check_pose_args(x, y, yaw, radius)
-    idx = road.query_radius(x, y, radius) if candidates is None else np.asarray(candidates, dtype=np.intp)
+    if candidates is None:  # the cell index: the disc's rows of cells are contiguous slices
+        cells = road.cells
+        sl = cells.slices(x, y, radius)
+        if not sl:
+            return None
+        found = _best(cells.gather(cells.x, sl), cells.gather(cells.y, sl), cells.gather(cells.cos, sl),
+                      cells.gather(cells.sin, sl), x, y, yaw, angle_weight_m_per_deg, radius)
+        if found is None:
+            return None
+        k, rev, e, a, d = found
+        return _make_match(road, cells.point_of(sl, k), rev, x, y, e, a, d)
+    idx = np.asarray(candidates, dtype=np.intp)
     if idx.size == 0:
         return None
     k, rev, e, a, d = match_candidates(
         x, y, yaw, road.xy_m[idx], road.yaw_cos[idx], road.yaw_sin[idx], angle_weight_m_per_deg
     )
     return _make_match(road, int(idx[k]), rev, x, y, e, a, d)
+
+
+def match_range(road: RoadMap, start: int, stop: int, x: float, y: float, yaw: float, radius: float,
+                angle_weight_m_per_deg: float = DEFAULT_ANGLE_WEIGHT_M_PER_DEG) -> Match | None:
+    """:func:`match` among the way-points ``start:stop`` (an edge's) within ``radius`` of (x, y)."""
+    xy = road.xy_m[start:stop]
+    found = _best(xy[:, 0], xy[:, 1], road.yaw_cos[start:stop], road.yaw_sin[start:stop], x, y, yaw,
+                  angle_weight_m_per_deg, radius)
+    if found is None:
+        return None
+    k, rev, e, a, d = found
+    return _make_match(road, start + k, rev, x, y, e, a, d)
+
+
+def lateral_bound_ok(m: Match, pose_matrix: np.ndarray, width_m: float) -> bool:
+    """True when :func:`map_pose`'s L for this pose is surely at most ``width_m`` — decided without
+    building R_t. R_t shares the pose's pitch and roll, so L = |cos(roll)·l + sin(roll)·sin(pitch)·s|
+    with l, s the match's lateral and longitudinal offsets; the margin covers rounding."""
+    pitch = math.asin(max(-1.0, min(1.0, -float(pose_matrix[2, 0]))))
+    roll = math.atan2(float(pose_matrix[2, 1]), float(pose_matrix[2, 2]))
+    lat = math.cos(roll) * m.signed_lateral_m + math.sin(roll) * math.sin(pitch) * m.longitudinal_m
+    return abs(lat) <= width_m - 1e-9 * (1.0 + width_m + abs(m.longitudinal_m))
+
+
+def _best(px: np.ndarray, py: np.ndarray, c: np.ndarray, s: np.ndarray, x: float, y: float, yaw: float, w: float,
+          radius: float) -> tuple[int, bool, float, float, float] | None:
+    """:func:`match_candidates` over points given as coordinate and heading arrays, those farther than
+    ``radius`` left out; None when every one is."""
+    e = np.hypot(px - x, py - y)
+    cos_d = c * math.cos(yaw) + s * math.sin(yaw)
+    a = np.degrees(np.arccos(np.minimum(np.abs(cos_d), 1.0)))
+    d = a * w
+    d += e
+    d[e > radius] = np.inf
+    k = int(np.argmin(d))
+    dk = float(d[k])
+    if dk == math.inf:
+        return None
+    return k, bool(cos_d[k] < 0.0), float(e[k]), float(a[k]), dk
 
 
 def _make_match(road: RoadMap, i: int, rev: bool, x: float, y: float, e: float, a: float, d: float) -> Match:

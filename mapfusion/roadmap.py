@@ -26,6 +26,7 @@ from .errors import ConfigError, MapFileError, MapMismatchError
 from .geometry import headings, process_polyline, quadratic_bezier, wrap_angle
 from .osm import DRIVABLE_HIGHWAYS, OsmWay, check_osm_path, read_drivable_ways
 from .projection import LocalProjection
+from .spatial import CellIndex
 
 log = logging.getLogger(__name__)
 
@@ -192,6 +193,7 @@ class RoadMap:
         self.yaw_cos = np.cos(self.yaw_rad)
         self.yaw_sin = np.sin(self.yaw_rad)
         self.tree = cKDTree(self.xy_m, balanced_tree=False, compact_nodes=False)
+        self._cells: CellIndex | None = None
 
     # ----------------------------------------------------------------- construction
     @classmethod
@@ -399,9 +401,16 @@ class RoadMap:
             self._continuations = cont
         return self._continuations
 
+    @property
+    def cells(self) -> CellIndex:
+        """The cell index of the way-points (built on first use: single radius queries and matches)."""
+        if self._cells is None:
+            self._cells = CellIndex(self.xy_m, self.yaw_cos, self.yaw_sin)
+        return self._cells
+
     def query_radius(self, x_m: float, y_m: float, radius_m: float) -> np.ndarray:
-        """Indices of way-points within ``radius_m`` of (x, y), unsorted."""
-        return np.asarray(self.tree.query_ball_point((x_m, y_m), radius_m), dtype=np.intp)
+        """Indices of way-points within ``radius_m`` of (x, y), in no particular order."""
+        return self.cells.query(x_m, y_m, radius_m)
 
     def match(
         self,
@@ -428,23 +437,28 @@ class RoadMap:
 
     def stats(self) -> MapStats:
         """Counts and lengths of the processed map."""
-        tunnel_way = np.array([w.tunnel for w in self.ways], dtype=bool)
-        lengths = self.edge_length_m
-        spacing = np.hypot(*np.diff(self.xy_m, axis=0).T)
-        same_edge = (self.edge[1:] == self.edge[:-1]) & (self.edge[1:] >= 0)
-        return MapStats(
-            source=self.source,
-            ways=len(self.ways),
-            edges=len(self.edge_u),
-            junctions=int(np.sum(self.vertex_degree >= 3)),
-            vertices=len(self.vertex_degree),
-            waypoints=len(self),
-            road_km=float(lengths.sum() / 1000.0),
-            tunnel_km=float(lengths[tunnel_way[self.edge_way_index]].sum() / 1000.0),
-            mean_spacing_m=float(spacing[same_edge].mean()) if same_edge.any() else 0.0,
-            build_s=self.build_s,
-            from_cache=self.from_cache,
-        )
+        return map_stats(self)
+
+
+def map_stats(road: RoadMap) -> MapStats:
+    """Counts and lengths of a processed map (:meth:`RoadMap.stats`)."""
+    tunnel_way = np.array([w.tunnel for w in road.ways], dtype=bool)
+    lengths = road.edge_length_m
+    spacing = np.hypot(*np.diff(road.xy_m, axis=0).T)
+    same_edge = (road.edge[1:] == road.edge[:-1]) & (road.edge[1:] >= 0)
+    return MapStats(
+        source=road.source,
+        ways=len(road.ways),
+        edges=len(road.edge_u),
+        junctions=int(np.sum(road.vertex_degree >= 3)),
+        vertices=len(road.vertex_degree),
+        waypoints=len(road),
+        road_km=float(lengths.sum() / 1000.0),
+        tunnel_km=float(lengths[tunnel_way[road.edge_way_index]].sum() / 1000.0),
+        mean_spacing_m=float(spacing[same_edge].mean()) if same_edge.any() else 0.0,
+        build_s=road.build_s,
+        from_cache=road.from_cache,
+    )
 
 
 _ARRAY_NAMES = (

@@ -31,14 +31,17 @@ def level(p: gtsam.Pose3) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(p.x(), p.y(), 0.0))
 
 
-def planar_step(prev_odo: gtsam.Pose3, cur_odo: gtsam.Pose3) -> gtsam.Pose3:
+def planar_step(prev_odo: gtsam.Pose3, cur_odo: gtsam.Pose3, scale: float = 1.0) -> gtsam.Pose3:
     """Relative motion projected on the horizontal plane with the odometry's own attitude:
-    the world displacement rotated by the previous yaw only; dz, roll and pitch dropped."""
+    the world displacement rotated by the previous yaw only; dz, roll and pitch dropped; the
+    translation times ``scale``."""
     d = cur_odo.translation() - prev_odo.translation()
     y0 = prev_odo.rotation().yaw()
     y1 = cur_odo.rotation().yaw()
     c, s = math.cos(y0), math.sin(y0)
-    return gtsam.Pose3(gtsam.Rot3.Yaw(y1 - y0), gtsam.Point3(c * d[0] + s * d[1], -s * d[0] + c * d[1], 0.0))
+    dx, dy = float(d[0]), float(d[1])
+    t = gtsam.Point3((c * dx + s * dy) * scale, (-s * dx + c * dy) * scale, 0.0)
+    return gtsam.Pose3(gtsam.Rot3.Yaw(y1 - y0), t)
 
 
 @dataclass(frozen=True)
@@ -201,9 +204,8 @@ class Track:
     def step(self, k: int, scale: float) -> gtsam.Pose3:
         """The scaled relative motion into frame k in the engine's state model."""
         if self.state is StateModel.planar:
-            rel = planar_step(self.raw[k - 1], self.raw[k])
-        else:
-            rel = self.rel[k]
+            return planar_step(self.raw[k - 1], self.raw[k], scale)
+        rel = self.rel[k]
         t = rel.translation() * scale
         return gtsam.Pose3(rel.rotation(), gtsam.Point3(*t))
 
