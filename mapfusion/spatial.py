@@ -29,7 +29,8 @@ class CellIndex:
         xy = np.asarray(xy_m, dtype=float).reshape(-1, 2)
         self.cell_m = float(cell_m)
         n = len(xy)
-        self.x0, self.y0 = (xy.min(axis=0) if n else np.zeros(2)).tolist()
+        lo = xy.min(axis=0) if n else np.zeros(2)
+        self.x0, self.y0 = float(lo[0]), float(lo[1])
         cx = np.floor((xy[:, 0] - self.x0) / self.cell_m).astype(np.int64)
         cy = np.floor((xy[:, 1] - self.y0) / self.cell_m).astype(np.int64)
         self.ncol = int(cx.max()) + 1 if n else 1
