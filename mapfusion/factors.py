@@ -140,7 +140,8 @@ def odometry_noise(cfg: FusionConfig, step: gtsam.Pose3, gap_frames: float, peri
     its length: a re-initialised odometry guesses the motion it did not see. Before initialisation
     the step is either loose (``loose_before_init``) or inflated by the scale's σ."""
     n = max(1.0, gap_frames)
-    length_m = float(np.linalg.norm(step.translation()))
+    tr = step.translation()
+    length_m = math.sqrt(tr.dot(tr))  # (np.linalg.norm's own arithmetic, less its overhead)
     st = math.hypot(cfg.odometry_sigma_after_init_m * n, cfg.odometry_sigma_per_m * length_m)
     sr = math.hypot(math.radians(cfg.odometry_rot_sigma_deg) * n,
                     math.radians(cfg.odometry_rot_sigma_deg_per_m) * length_m)

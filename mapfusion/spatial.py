@@ -22,8 +22,8 @@ DENSE_CELLS_PER_POINT, DENSE_CELLS_MIN = 4, 1 << 20
 
 
 class CellIndex:
-    """Points (N, 2) in cells of ``cell_m``; ``x``, ``y``, ``cos``, ``sin`` are the points' coordinates
-    and heading's cosine and sine in cell order, ``order`` maps that order back to the point indices."""
+    """Points (N, 2) in cells of ``cell_m``; ``block`` (N, 4) holds each point's x, y and its heading's
+    cosine and sine in cell order, ``order`` maps that order back to the point indices."""
 
     def __init__(self, xy_m: np.ndarray, cos: np.ndarray, sin: np.ndarray, cell_m: float = CELL_M) -> None:
         xy = np.asarray(xy_m, dtype=float).reshape(-1, 2)
@@ -38,10 +38,9 @@ class CellIndex:
         key = cy * self.ncol + cx
         self.order = np.argsort(key, kind="stable").astype(np.intp)
         self.key = key[self.order]
-        self.x = np.ascontiguousarray(xy[self.order, 0])
-        self.y = np.ascontiguousarray(xy[self.order, 1])
-        self.cos = np.ascontiguousarray(np.asarray(cos, dtype=float)[self.order])
-        self.sin = np.ascontiguousarray(np.asarray(sin, dtype=float)[self.order])
+        # one row a point (x, y, cos, sin): a query gathers one slice a row of cells, not four
+        self.block = np.column_stack([xy[self.order], np.asarray(cos, dtype=float)[self.order],
+                                      np.asarray(sin, dtype=float)[self.order]])
         cells = self.ncol * self.nrow
         self._start: list[int] | None = None
         if cells <= max(DENSE_CELLS_PER_POINT * n, DENSE_CELLS_MIN):
@@ -88,7 +87,8 @@ class CellIndex:
         sl = self.slices(x, y, radius_m)
         if not sl:
             return np.empty(0, dtype=np.intp)
-        dx = self.gather(self.x, sl) - x
-        dy = self.gather(self.y, sl) - y
+        b = self.gather(self.block, sl)
+        dx = b[:, 0] - x
+        dy = b[:, 1] - y
         inside = np.flatnonzero(dx * dx + dy * dy <= radius_m * radius_m)
         return self.gather(self.order, sl)[inside]

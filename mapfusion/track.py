@@ -115,6 +115,7 @@ class Track:
         self.online: History[gtsam.Pose3 | None] = History()
         self.level_rot: gtsam.Pose3 | None = None
         self._odo_abs = gtsam.Pose3()
+        self._planar_memo: tuple[gtsam.Pose3, tuple[float, float, float]] | None = None
 
     def __len__(self) -> int:
         return len(self.t)
@@ -201,10 +202,26 @@ class Track:
         pose = gtsam.Pose3(rot, gtsam.Point3(xy[0], xy[1], p[2]))
         return level(pose) if self.state is StateModel.planar else pose
 
+    def _planar(self, pose: gtsam.Pose3) -> tuple[float, float, float]:
+        """(x, y, yaw) of a raw pose; the last one read is kept, as the next frame's step starts from it
+        (by identity: a restated or levelled pose is a new object)."""
+        memo = self._planar_memo
+        if memo is not None and memo[0] is pose:
+            return memo[1]
+        x, y, _ = pose.translation().tolist()
+        got = (x, y, pose.rotation().yaw())
+        self._planar_memo = (pose, got)
+        return got
+
     def step(self, k: int, scale: float) -> gtsam.Pose3:
         """The scaled relative motion into frame k in the engine's state model."""
-        if self.state is StateModel.planar:
-            return planar_step(self.raw[k - 1], self.raw[k], scale)
+        if self.state is StateModel.planar:  # planar_step's arithmetic, each pose's yaw read once
+            x0, y0, yaw0 = self._planar(self.raw[k - 1])
+            x1, y1, yaw1 = self._planar(self.raw[k])
+            dx, dy = x1 - x0, y1 - y0
+            c, s = math.cos(yaw0), math.sin(yaw0)
+            t = gtsam.Point3((c * dx + s * dy) * scale, (-s * dx + c * dy) * scale, 0.0)
+            return gtsam.Pose3(gtsam.Rot3.Yaw(yaw1 - yaw0), t)
         rel = self.rel[k]
         t = rel.translation() * scale
         return gtsam.Pose3(rel.rotation(), gtsam.Point3(*t))
@@ -233,7 +250,8 @@ class JumpGuard:
             self._t = t
             return rel, False
         dt, self._t = max(t - self._t, 1e-3), t
-        speed = float(np.linalg.norm(rel.translation())) * (scale or 1.0) / dt
+        tr = rel.translation()
+        speed = math.sqrt(tr.dot(tr)) * (scale or 1.0) / dt  # (np.linalg.norm's own arithmetic, less its overhead)
         impossible = False
         if speed > self.max_speed_mps:  # rare: only then the median of the odometry's own speeds is needed
             seen = len(self._speeds) >= self.MIN_HISTORY

@@ -67,6 +67,7 @@ class MatchBench:
     poses: int
     batch_matches_per_s: float
     single_matches_per_s: float
+    first_pass_settled: float  # fraction of poses the batch path's first k-nearest pass settles
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -91,7 +92,10 @@ def bench_match(road: RoadMap, n_poses: int = 50000, n_single: int = 5000, seed:
     for j in range(n_single):
         road.match(float(x[j]), float(y[j]), float(yaw[j]))
     single = n_single / (time.perf_counter() - t0)
-    return MatchBench(map=road.source, poses=n_poses, batch_matches_per_s=batch, single_matches_per_s=single)
+    from mapfusion.matcher import first_pass_settled
+
+    return MatchBench(map=road.source, poses=n_poses, batch_matches_per_s=batch, single_matches_per_s=single,
+                      first_pass_settled=first_pass_settled(road, x, y, yaw))
 
 
 def big_city_map(directory: Path | None = None) -> Path:
@@ -262,10 +266,13 @@ def bench_kdtree(road: RoadMap, n_poses: int = 5000, radius_m: float = 20.0, see
     return n_poses / (time.perf_counter() - t0)
 
 
-def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (10.0, 15.0)):
+def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (10.0, 15.0), repeats: int = 3):
     """``mapfusion bench``: one dict per benchmark (``benchmark`` names it), each with the anchor
-    measured in the same run and the ratio to it."""
+    measured in the same run and the ratio to it. The engine and its anchor run ``repeats`` times,
+    interleaved (a shared machine's load drifts between runs; neighbours see the same load): the
+    figures are medians, each ratio the median of the rounds' ratios."""
     from mapfusion import synthetic
+    from mapfusion.config import FusionConfig, RoadTracking
 
     d = Path(tempfile.mkdtemp(prefix="mapfusion-bench-"))
     city = synthetic.write("city", d / "city.osm", width_km=city_km[0], height_km=city_km[1])
@@ -274,18 +281,37 @@ def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (1
     build_s = time.perf_counter() - t0
     yield {"benchmark": "roadmap_build", "map": f"synthetic city {city_km[0]:g} × {city_km[1]:g} km",
            "waypoints": len(road), "build_s": build_s}
-    eng = bench_engine(road, duration_s=duration_s)
-    bare = bench_bare_chain(road, duration_s=duration_s)
-    yield {"benchmark": "engine", "frames": eng.frames, "map_priors": eng.map_priors, "frames_per_s": eng.frames_per_s,
-           "growth": eng.growth, "bare_chain_frames_per_s": bare, "ratio_to_bare": eng.frames_per_s / bare}
-    from mapfusion.config import FusionConfig, RoadTracking
-
-    hmm = bench_engine(road, duration_s=duration_s, config=FusionConfig(road_tracking=RoadTracking.hmm))
-    yield {"benchmark": "engine_hmm", "frames": hmm.frames, "map_priors": hmm.map_priors,
-           "frames_per_s": hmm.frames_per_s, "growth": hmm.growth, "ratio_to_bare": hmm.frames_per_s / bare,
-           "ratio_to_single_frame": hmm.frames_per_s / eng.frames_per_s}
-    m = bench_match(road)
-    kd = bench_kdtree(road)
-    yield {"benchmark": "matcher", "single_matches_per_s": m.single_matches_per_s,
-           "batch_matches_per_s": m.batch_matches_per_s, "kdtree_queries_per_s": kd,
-           "single_ratio_to_kdtree": m.single_matches_per_s / kd, "batch_ratio_to_kdtree": m.batch_matches_per_s / kd}
+    hmm_cfg = FusionConfig(road_tracking=RoadTracking.hmm)
+    rounds = []
+    for _ in range(max(1, repeats)):
+        bare = bench_bare_chain(road, duration_s=duration_s)
+        eng = bench_engine(road, duration_s=duration_s)
+        hmm = bench_engine(road, duration_s=duration_s, config=hmm_cfg)
+        rounds.append((bare, eng, hmm))
+    med = lambda xs: float(np.median(xs))  # noqa: E731
+    bare_fps = [b for b, _, _ in rounds]
+    eng_fps = [e.frames_per_s for _, e, _ in rounds]
+    hmm_fps = [h.frames_per_s for _, _, h in rounds]
+    eng_ratio = [e / b for e, b in zip(eng_fps, bare_fps)]
+    hmm_ratio = [h / b for h, b in zip(hmm_fps, bare_fps)]
+    eng, hmm = rounds[0][1], rounds[0][2]
+    yield {"benchmark": "engine", "frames": eng.frames, "map_priors": eng.map_priors, "frames_per_s": med(eng_fps),
+           "growth": med([e.growth for _, e, _ in rounds]), "bare_chain_frames_per_s": med(bare_fps),
+           "ratio_to_bare": med(eng_ratio), "rounds": {"frames_per_s": eng_fps, "bare_chain_frames_per_s": bare_fps,
+                                                      "ratio_to_bare": eng_ratio}}
+    yield {"benchmark": "engine_hmm", "frames": hmm.frames, "map_priors": hmm.map_priors, "frames_per_s": med(hmm_fps),
+           "growth": med([h.growth for _, _, h in rounds]), "ratio_to_bare": med(hmm_ratio),
+           "ratio_to_single_frame": med([h / e for h, e in zip(hmm_fps, eng_fps)]),
+           "rounds": {"frames_per_s": hmm_fps, "ratio_to_bare": hmm_ratio}}
+    singles, batches, kds, settled = [], [], [], 0.0
+    for _ in range(max(1, repeats)):
+        m = bench_match(road)
+        kd = bench_kdtree(road)
+        singles.append(m.single_matches_per_s)
+        batches.append(m.batch_matches_per_s)
+        kds.append(kd)
+        settled = m.first_pass_settled  # (the same poses every round)
+    yield {"benchmark": "matcher", "single_matches_per_s": med(singles), "batch_matches_per_s": med(batches),
+           "kdtree_queries_per_s": med(kds), "single_ratio_to_kdtree": med([s / k for s, k in zip(singles, kds)]),
+           "batch_ratio_to_kdtree": med([b / k for b, k in zip(batches, kds)]), "batch_first_pass_settled": settled,
+           "rounds": {"single_matches_per_s": singles, "batch_matches_per_s": batches, "kdtree_queries_per_s": kds}}

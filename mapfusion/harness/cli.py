@@ -960,6 +960,8 @@ def bench(
     duration_s: Annotated[float, typer.Option("--duration-s", min=60.0, help="Length of the engine's synthetic drive, "
                                               "seconds (10 Hz odometry).")] = 3600.0,
     city_km: Annotated[str, typer.Option("--city-km", help="Size of the synthetic city, WIDTHxHEIGHT km.")] = "10x15",
+    repeats: Annotated[int, typer.Option("--repeats", min=1, max=20, help="Rounds of the engine and matcher "
+                                         "benchmarks, each beside its anchor; medians are reported.")] = 3,
 ) -> None:
     """Throughput of the road-map build, the engine (with map priors, against a bare GTSAM chain measured
     in the same run: ratio_to_bare) and the matcher (against a k-d tree ball query: *_ratio_to_kdtree)."""
@@ -973,12 +975,12 @@ def bench(
     except ValueError:
         _fail(f"--city-km {city_km!r}: expected WIDTHxHEIGHT in km, at most 10x15")
     with err_console.status("benchmarking (road map, engine, matcher) ..."):
-        for row in run_benchmarks(duration_s, size):
+        for row in run_benchmarks(duration_s, size, repeats):
             if as_json:
                 _print_json(row)
             else:
-                console.print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
-                              highlight=False)
+                console.print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()
+                                       if k != "rounds"), highlight=False)  # (the rounds: in --json)
 
 
 def _finite_or_null(obj):
