@@ -67,9 +67,10 @@ def candidates(road: RoadMap, near: np.ndarray, x: float, y: float, yaw: float, 
         order = np.lexsort((d, edges))  # by edge, then cost: the first of each edge is its best
         first = np.ones(order.size, dtype=bool)
         first[1:] = edges[order][1:] != edges[order][:-1]
-        for j in order[first]:
-            i = int(idx[j])
-            out.append(Candidate(int(edges[j]), direction, i, float(d[j]), float(road.s_m[i])))
+        sel = order[first]
+        best = idx[sel]
+        for i, edge, cost, along in zip(best.tolist(), edges[sel].tolist(), d[sel].tolist(), road.s_m[best].tolist()):
+            out.append(Candidate(edge, direction, i, cost, along))
     return out
 
 
