@@ -16,14 +16,15 @@ import json
 import logging
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import ConfigError, MapFileError, MapMismatchError
-from .geometry import headings, process_polyline, quadratic_bezier, wrap_angle
+from . import polylines
+from .geometry import wrap_angle
 from .osm import DRIVABLE_HIGHWAYS, OsmWay, check_osm_path, read_drivable_ways
 from .projection import LocalProjection
 from .spatial import CellIndex
@@ -132,18 +133,6 @@ def default_cache_dir() -> Path:
     """``$MAPFUSION_CACHE`` or ``~/.cache/mapfusion``."""
     env = os.environ.get("MAPFUSION_CACHE")
     return Path(env) if env else Path.home() / ".cache" / "mapfusion"
-
-
-@dataclass
-class _Build:
-    """Arrays accumulated while building; turned into a RoadMap at the end."""
-
-    xy: list = field(default_factory=list)
-    yaw: list = field(default_factory=list)
-    s: list = field(default_factory=list)
-    way_index: list = field(default_factory=list)
-    edge: list = field(default_factory=list)
-    join_vertex: list = field(default_factory=list)
 
 
 class RoadMap:
@@ -509,116 +498,125 @@ def _split_at_junctions(osm_ways: list[OsmWay], xy_all: np.ndarray):
 
 
 def _build_graph_and_points(osm_ways: list[OsmWay], xy_all: np.ndarray, cfg: RoadMapConfig) -> dict:
-    """Split ways at junctions, process each edge's polyline and round the joins."""
+    """Split ways at junctions, process each edge's polyline and round the joins (every edge's polyline
+    at once: :mod:`.polylines` does per point what :func:`.geometry.process_polyline` does per polyline)."""
     vertex_of, vertex_xy, edges_raw = _split_at_junctions(osm_ways, xy_all)
-    build = _Build()
-    edge_u, edge_v, edge_way, edge_len, edge_start, edge_end = [], [], [], [], [], []
-    count = 0
-    for e, (wi, u, v, poly) in enumerate(edges_raw):
-        pts, s, yaw = process_polyline(poly, cfg.spacing_m, cfg.smoothing_window_m)
-        if len(pts) < 2:  # a zero-length edge (duplicate nodes): no way-points, still an edge
-            pts, s, yaw = poly[:1], np.zeros(1), np.zeros(1)
-        build.xy.append(pts)
-        build.yaw.append(yaw)
-        build.s.append(s)
-        build.way_index.append(np.full(len(pts), wi, dtype=np.int32))
-        build.edge.append(np.full(len(pts), e, dtype=np.int32))
-        build.join_vertex.append(np.full(len(pts), -1, dtype=np.int32))
-        edge_u.append(u)
-        edge_v.append(v)
-        edge_way.append(wi)
-        edge_len.append(s[-1])
-        edge_start.append(count)
-        count += len(pts)
-        edge_end.append(count)
+    n_edges = len(edges_raw)
+    raw_off = polylines.offsets_of(np.array([len(e[3]) for e in edges_raw], dtype=np.int64))
+    raw = np.concatenate([e[3] for e in edges_raw]) if edges_raw else np.zeros((0, 2))
+    pts, s, yaw, off = polylines.process(raw, raw_off, cfg.spacing_m, cfg.smoothing_window_m)
+    counts = np.diff(off)
+    short = counts < 2  # a zero-length edge (duplicate nodes): no way-points, still an edge: its first node
+    if short.any():
+        keep = np.repeat(~short, counts)
+        first = raw[raw_off[:-1][short]]
+        counts = np.where(short, 1, counts)
+        new_off = polylines.offsets_of(counts)
+        xy_e, s_e, yaw_e = np.empty((new_off[-1], 2)), np.zeros(new_off[-1]), np.zeros(new_off[-1])
+        dst = np.repeat(~short, counts)
+        xy_e[dst], s_e[dst], yaw_e[dst] = pts[keep], s[keep], yaw[keep]
+        xy_e[new_off[:-1][short]] = first
+        pts, s, yaw, off = xy_e, s_e, yaw_e, new_off
+    edge_u = np.array([e[1] for e in edges_raw], dtype=np.int32)
+    edge_v = np.array([e[2] for e in edges_raw], dtype=np.int32)
+    edge_way = np.array([e[0] for e in edges_raw], dtype=np.int32)
+    edge_len = s[off[1:] - 1] if n_edges else np.zeros(0)
 
     vertex_degree = np.zeros(len(vertex_xy), dtype=np.int32)
-    np.add.at(vertex_degree, np.asarray(edge_u, dtype=np.intp), 1)
-    np.add.at(vertex_degree, np.asarray(edge_v, dtype=np.intp), 1)
+    np.add.at(vertex_degree, edge_u.astype(np.intp), 1)
+    np.add.at(vertex_degree, edge_v.astype(np.intp), 1)
 
-    _add_join_curves(build, edge_u, edge_v, edge_way, edge_start, edge_end, vertex_degree, cfg)
+    joins = _join_curves(pts, s, off, edge_u, edge_v, edge_way, vertex_degree, cfg)
+    edge_of_point = np.repeat(np.arange(n_edges, dtype=np.int32), counts)
 
     vertex_node = np.empty(len(vertex_xy), dtype=np.int64)
     for nid, vi in vertex_of.items():
         vertex_node[vi] = nid
     return {
-        "xy_m": np.concatenate(build.xy).astype(np.float64),
-        "yaw_rad": np.concatenate(build.yaw).astype(np.float64),
-        "s_m": np.concatenate(build.s).astype(np.float32),
-        "way_index": np.concatenate(build.way_index).astype(np.int32),
-        "edge": np.concatenate(build.edge).astype(np.int32),
-        "join_vertex": np.concatenate(build.join_vertex).astype(np.int32),
+        "xy_m": np.concatenate([pts, joins["xy"]]).astype(np.float64),
+        "yaw_rad": np.concatenate([yaw, joins["yaw"]]).astype(np.float64),
+        "s_m": np.concatenate([s, joins["s"]]).astype(np.float32),
+        "way_index": np.concatenate([edge_way[edge_of_point], joins["way_index"]]).astype(np.int32),
+        "edge": np.concatenate([edge_of_point, np.full(len(joins["s"]), -1, dtype=np.int32)]).astype(np.int32),
+        "join_vertex": np.concatenate([np.full(len(s), -1, dtype=np.int32), joins["join_vertex"]]).astype(np.int32),
         "vertex_xy_m": np.asarray(vertex_xy, dtype=np.float64).reshape(-1, 2),
         "vertex_node_id": vertex_node,
         "vertex_degree": vertex_degree,
-        "edge_u": np.asarray(edge_u, dtype=np.int32),
-        "edge_v": np.asarray(edge_v, dtype=np.int32),
-        "edge_way_index": np.asarray(edge_way, dtype=np.int32),
+        "edge_u": edge_u,
+        "edge_v": edge_v,
+        "edge_way_index": edge_way,
         "edge_length_m": np.asarray(edge_len, dtype=np.float64),
-        "edge_start": np.asarray(edge_start, dtype=np.int64),
-        "edge_end": np.asarray(edge_end, dtype=np.int64),
+        "edge_start": np.asarray(off[:-1], dtype=np.int64),
+        "edge_end": np.asarray(off[1:], dtype=np.int64),
     }
 
 
-def _add_join_curves(b: _Build, edge_u, edge_v, edge_way, edge_start, edge_end, degree, cfg) -> None:
+def _join_curves(xy: np.ndarray, s: np.ndarray, off: np.ndarray, edge_u, edge_v, edge_way, degree, cfg) -> dict:
     """Round the join of every pair of edges meeting at a vertex with a Bézier curve.
 
     The curve runs from ``join_radius_m`` back on one edge, through the corner, to
     ``join_radius_m`` along the other; its first half belongs to the first edge's way, the
     second half to the other's. Drawn once per unordered pair (both travel directions match it).
+    Edge e's way-points are ``xy[off[e]:off[e + 1]]`` with arc lengths ``s``. Returns the curves'
+    way-point arrays, in the order of the vertices' first appearance and of the pairs' legs.
     """
+    empty = {"xy": np.zeros((0, 2)), "yaw": np.zeros(0), "s": np.zeros(0),
+             "way_index": np.zeros(0, dtype=np.int32), "join_vertex": np.zeros(0, dtype=np.int32)}
     if cfg.join_radius_m <= 0:
-        return
-    xy_edges = b.xy  # per-edge arrays, in edge order
+        return empty
     ends_at: dict[int, list[tuple[int, bool]]] = {}
-    for e, (u, v) in enumerate(zip(edge_u, edge_v)):
-        if edge_end[e] - edge_start[e] < 2:
+    n = np.diff(off)
+    for e, (u, v, ne) in enumerate(zip(edge_u.tolist(), edge_v.tolist(), n.tolist())):
+        if ne < 2:
             continue
         ends_at.setdefault(u, []).append((e, True))  # edge leaves the vertex at its start
         ends_at.setdefault(v, []).append((e, False))  # edge arrives at the vertex at its end
-    min_turn = np.radians(cfg.join_min_turn_deg)
-    max_turn = np.radians(cfg.join_max_turn_deg)
-    n_curves = 0
-    for vertex, ends in ends_at.items():
-        if degree[vertex] < 2 or len(ends) < 2:
-            continue
-        # for each edge end: the point join_radius back along it, and the direction leaving the vertex
-        legs = []
-        for e, at_start in ends:
-            pts = xy_edges[e]
-            length = b.s[e][-1]
-            r = min(cfg.join_radius_m, 0.45 * length)
-            if r < cfg.spacing_m:
-                continue
-            dist = r if at_start else length - r
-            p = np.array([np.interp(dist, b.s[e], pts[:, 0]), np.interp(dist, b.s[e], pts[:, 1])])
-            corner = pts[0] if at_start else pts[-1]
-            d = p - corner
-            legs.append((e, p, corner, np.arctan2(d[1], d[0])))
-        for i in range(len(legs)):
-            for j in range(i + 1, len(legs)):
-                ei, pi, corner, ai = legs[i]
-                ej, pj, _, aj = legs[j]
-                # arriving along leg i (direction ai + pi) and leaving along leg j (direction aj)
-                turn = abs(float(wrap_angle(aj - (ai + np.pi))))
-                if turn < min_turn or turn > max_turn:
-                    continue
-                pts = quadratic_bezier(pi, corner, pj, cfg.spacing_m)
-                if len(pts) < 3:
-                    continue
-                half = len(pts) // 2
-                wi = np.empty(len(pts), dtype=np.int32)
-                wi[:half] = edge_way[ei]
-                wi[half:] = edge_way[ej]
-                seg = np.hypot(*np.diff(pts, axis=0).T)
-                b.xy.append(pts)
-                b.yaw.append(headings(pts))
-                b.s.append(np.concatenate(([0.0], np.cumsum(seg))))
-                b.way_index.append(wi)
-                b.edge.append(np.full(len(pts), -1, dtype=np.int32))
-                b.join_vertex.append(np.full(len(pts), vertex, dtype=np.int32))
-                n_curves += 1
-    log.debug("added %d join curves", n_curves)
+    legs = [(vertex, e, at_start) for vertex, ends in ends_at.items() if degree[vertex] >= 2 and len(ends) >= 2
+            for e, at_start in ends]
+    if not legs:
+        return empty
+    leg_vertex, leg_edge, leg_start = (np.array(c) for c in zip(*legs))
+    # for each edge end: the point join_radius back along it, and the direction leaving the vertex
+    length = s[off[leg_edge + 1] - 1]
+    r = np.minimum(cfg.join_radius_m, 0.45 * length)
+    ok = r >= cfg.spacing_m
+    leg_vertex, leg_edge, leg_start, length, r = (a[ok] for a in (leg_vertex, leg_edge, leg_start, length, r))
+    dist = np.where(leg_start, r, length - r)
+    p = polylines.interp(dist, leg_edge, s, xy, off)
+    corner = np.where(leg_start[:, None], xy[off[leg_edge]], xy[off[leg_edge + 1] - 1])
+    d = p - corner
+    angle = np.arctan2(d[:, 1], d[:, 0])
+    # every pair of legs at a vertex (i < j in the legs' order), vertex by vertex
+    bounds = np.flatnonzero(np.r_[True, leg_vertex[1:] != leg_vertex[:-1], True])
+    first, size = bounds[:-1], np.diff(bounds)
+    pi_list, pj_list = [], []
+    for m in np.unique(size[size >= 2]):
+        a, b = np.triu_indices(int(m), 1)
+        base = first[size == m]
+        pi_list.append((base[:, None] + a[None, :]).ravel())
+        pj_list.append((base[:, None] + b[None, :]).ravel())
+    if not pi_list:
+        return empty
+    i = np.concatenate(pi_list)
+    j = np.concatenate(pj_list)
+    order = np.lexsort((j, i))  # legs are in vertex order, so (i, j) is the drawing order
+    i, j = i[order], j[order]
+    # arriving along leg i (direction angle_i + pi) and leaving along leg j (direction angle_j)
+    turn = np.abs(wrap_angle(angle[j] - (angle[i] + np.pi)))
+    keep = (turn >= np.radians(cfg.join_min_turn_deg)) & (turn <= np.radians(cfg.join_max_turn_deg))
+    i, j = i[keep], j[keep]
+    pts, c_off = polylines.quadratic_beziers(p[i], corner[i], p[j], cfg.spacing_m)
+    cn = np.diff(c_off)
+    big = cn >= 3
+    sel = np.repeat(big, cn)
+    pts, cn, i, j = pts[sel], cn[big], i[big], j[big]
+    c_off = polylines.offsets_of(cn)
+    local = polylines.local_index(c_off)
+    half = np.repeat(cn // 2, cn)
+    way = np.where(local < half, np.repeat(edge_way[leg_edge[i]], cn), np.repeat(edge_way[leg_edge[j]], cn))
+    log.debug("added %d join curves", len(cn))
+    return {"xy": pts, "yaw": polylines.headings(pts, c_off), "s": polylines.arc_length(pts, c_off),
+            "way_index": way.astype(np.int32), "join_vertex": np.repeat(leg_vertex[i], cn).astype(np.int32)}
 
 
 def load_roadmap(path: str | Path, config: RoadMapConfig | None = None, **kw) -> RoadMap:
