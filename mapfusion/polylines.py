@@ -93,16 +93,19 @@ def interp(x: np.ndarray, x_seg: np.ndarray, xp: np.ndarray, fp: np.ndarray, xp_
     xp_seg = segment_ids(xp_offsets)
     j = np.searchsorted(xp_seg + 1j * xp, x_seg + 1j * x, side="right") - 1
     last = xp_offsets[x_seg + 1] - 1
-    inner = (j < last) & (xp[np.minimum(j, len(xp) - 1)] != x)
-    out = fp[np.minimum(j, last)]  # at a knot, or at or past the end: that knot's value, as np.interp
-    k = j[inner]
-    dx = (xp[k + 1] - xp[k])
-    dt = (x[inner] - xp[k])
-    if fp.ndim == 2:
-        dx, dt = dx[:, None], dt[:, None]
-    slope = (fp[k + 1] - fp[k]) / dx
-    out[inner] = slope * dt + fp[k]
-    return out
+    k = np.minimum(j, last - 1)  # the knot interval; at a knot x − xp[k] = 0 gives fp[k] exactly, as np.interp
+    dxp = np.diff(xp)[k]
+    dt = x - xp[k]
+    at_end = np.flatnonzero(j >= last)  # at (or past) a polyline's last knot: its value, as np.interp
+    cols = [fp] if fp.ndim == 1 else [np.ascontiguousarray(fp[:, c]) for c in range(fp.shape[1])]
+    out = []
+    for f in cols:
+        v = np.diff(f)[k] / dxp
+        v *= dt
+        v += f[k]
+        v[at_end] = f[last[at_end]]
+        out.append(v)
+    return out[0] if fp.ndim == 1 else np.column_stack(out)
 
 
 def resample(points: np.ndarray, offsets: np.ndarray, spacing_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
