@@ -60,19 +60,17 @@ def cumsum(values: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     return out
 
 
-def _diff_within(points: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``np.diff`` of each polyline's points, concatenated, and the index of each difference's later point."""
-    later = np.ones(len(points), dtype=bool)
-    later[offsets[:-1][lengths_of(offsets) > 0]] = False
-    i = np.flatnonzero(later)
-    return points[i] - points[i - 1], i
+def _starts(offsets: np.ndarray) -> np.ndarray:
+    """The first point of every non-empty polyline."""
+    return offsets[:-1][lengths_of(offsets) > 0]
 
 
 def drop_repeated(points: np.ndarray, offsets: np.ndarray, tol_m: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
     """:func:`mapfusion.geometry.drop_repeated` of every polyline."""
     keep = np.ones(len(points), dtype=bool)
-    d, i = _diff_within(points, offsets)
-    keep[i] = np.hypot(*d.T) > tol_m
+    d = np.diff(points, axis=0)  # (across two polylines too: overwritten at each polyline's start)
+    keep[1:] = np.hypot(d[:, 0], d[:, 1]) > tol_m
+    keep[_starts(offsets)] = True
     single = np.repeat(lengths_of(offsets) < 2, lengths_of(offsets))
     keep |= single  # a polyline of fewer than two points is returned as it is
     counts = np.bincount(segment_ids(offsets), weights=keep, minlength=len(offsets) - 1).astype(np.int64)
@@ -82,8 +80,9 @@ def drop_repeated(points: np.ndarray, offsets: np.ndarray, tol_m: float = 1e-6) 
 def arc_length(points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """:func:`mapfusion.geometry.cumulative_length` of every polyline, concatenated."""
     step = np.zeros(len(points))
-    d, i = _diff_within(points, offsets)
-    step[i] = np.hypot(*d.T)
+    d = np.diff(points, axis=0)
+    step[1:] = np.hypot(d[:, 0], d[:, 1])
+    step[_starts(offsets)] = 0.0
     return cumsum(step, offsets)
 
 
@@ -158,9 +157,10 @@ def rolling_mean(points: np.ndarray, offsets: np.ndarray, half_window: int) -> n
 def headings(points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """:func:`mapfusion.geometry.headings` of every polyline."""
     h = np.zeros(len(points))
-    d, i = _diff_within(points, offsets)
-    h[i - 1] = np.arctan2(d[:, 1], d[:, 0])
+    d = np.diff(points, axis=0)
+    h[:-1] = np.arctan2(d[:, 1], d[:, 0])
     n = lengths_of(offsets)
+    h[offsets[1:][n == 1] - 1] = 0.0
     ends = offsets[1:][n >= 2] - 1
     h[ends] = h[ends - 1]
     return h

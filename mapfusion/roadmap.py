@@ -181,7 +181,7 @@ class RoadMap:
         self.edge_end = arrays["edge_end"]
         self.yaw_cos = np.cos(self.yaw_rad)
         self.yaw_sin = np.sin(self.yaw_rad)
-        self.tree = cKDTree(self.xy_m, balanced_tree=False, compact_nodes=False)
+        self._tree: cKDTree | None = None
         self._cells: CellIndex | None = None
 
     # ----------------------------------------------------------------- construction
@@ -391,6 +391,13 @@ class RoadMap:
         return self._continuations
 
     @property
+    def tree(self) -> cKDTree:
+        """A k-d tree of the way-points (built on first use: the batch matcher's k-nearest queries)."""
+        if self._tree is None:
+            self._tree = cKDTree(self.xy_m, balanced_tree=False, compact_nodes=False)
+        return self._tree
+
+    @property
     def cells(self) -> CellIndex:
         """The cell index of the way-points (built on first use: single radius queries and matches)."""
         if self._cells is None:
@@ -401,15 +408,8 @@ class RoadMap:
         """Indices of way-points within ``radius_m`` of (x, y), in no particular order."""
         return self.cells.query(x_m, y_m, radius_m)
 
-    def match(
-        self,
-        x: float,
-        y: float,
-        yaw: float,
-        radius: float = 20.0,
-        angle_weight_m_per_deg: float = 1.0,
-        candidates: np.ndarray | None = None,
-    ):
+    def match(self, x: float, y: float, yaw: float, radius: float = 20.0, angle_weight_m_per_deg: float = 1.0,
+              candidates: np.ndarray | None = None):
         """The closest map pose by D = E + w·A within ``radius`` metres, or None.
 
         See :func:`mapfusion.matcher.match`; ``yaw`` in radians (ENU, 0 = east, CCW).
@@ -551,6 +551,32 @@ def _build_graph_and_points(osm_ways: list[OsmWay], xy_all: np.ndarray, cfg: Roa
     }
 
 
+def _join_legs(xy: np.ndarray, s: np.ndarray, off: np.ndarray, edge_u, edge_v, degree, cfg):
+    """Every edge end at a vertex of degree ≥ 2 where a join may start, in the order of the vertices'
+    first appearance: (vertex, edge, the point ``join_radius_m`` back along the edge, the corner, the
+    direction from the corner to that point), or None when there is none."""
+    ends_at: dict[int, list[tuple[int, bool]]] = {}
+    n = np.diff(off)
+    for e, (u, v, ne) in enumerate(zip(edge_u.tolist(), edge_v.tolist(), n.tolist())):
+        if ne < 2:
+            continue
+        ends_at.setdefault(u, []).append((e, True))  # edge leaves the vertex at its start
+        ends_at.setdefault(v, []).append((e, False))  # edge arrives at the vertex at its end
+    legs = [(vertex, e, at_start) for vertex, ends in ends_at.items() if degree[vertex] >= 2 and len(ends) >= 2
+            for e, at_start in ends]
+    if not legs:
+        return None
+    leg_vertex, leg_edge, leg_start = (np.array(c) for c in zip(*legs))
+    length = s[off[leg_edge + 1] - 1]
+    r = np.minimum(cfg.join_radius_m, 0.45 * length)
+    ok = r >= cfg.spacing_m
+    leg_vertex, leg_edge, leg_start, length, r = (a[ok] for a in (leg_vertex, leg_edge, leg_start, length, r))
+    p = polylines.interp(np.where(leg_start, r, length - r), leg_edge, s, xy, off)
+    corner = np.where(leg_start[:, None], xy[off[leg_edge]], xy[off[leg_edge + 1] - 1])
+    d = p - corner
+    return leg_vertex, leg_edge, p, corner, np.arctan2(d[:, 1], d[:, 0])
+
+
 def _join_curves(xy: np.ndarray, s: np.ndarray, off: np.ndarray, edge_u, edge_v, edge_way, degree, cfg) -> dict:
     """Round the join of every pair of edges meeting at a vertex with a Bézier curve.
 
@@ -562,30 +588,10 @@ def _join_curves(xy: np.ndarray, s: np.ndarray, off: np.ndarray, edge_u, edge_v,
     """
     empty = {"xy": np.zeros((0, 2)), "yaw": np.zeros(0), "s": np.zeros(0),
              "way_index": np.zeros(0, dtype=np.int32), "join_vertex": np.zeros(0, dtype=np.int32)}
-    if cfg.join_radius_m <= 0:
+    legs = _join_legs(xy, s, off, edge_u, edge_v, degree, cfg) if cfg.join_radius_m > 0 else None
+    if legs is None:
         return empty
-    ends_at: dict[int, list[tuple[int, bool]]] = {}
-    n = np.diff(off)
-    for e, (u, v, ne) in enumerate(zip(edge_u.tolist(), edge_v.tolist(), n.tolist())):
-        if ne < 2:
-            continue
-        ends_at.setdefault(u, []).append((e, True))  # edge leaves the vertex at its start
-        ends_at.setdefault(v, []).append((e, False))  # edge arrives at the vertex at its end
-    legs = [(vertex, e, at_start) for vertex, ends in ends_at.items() if degree[vertex] >= 2 and len(ends) >= 2
-            for e, at_start in ends]
-    if not legs:
-        return empty
-    leg_vertex, leg_edge, leg_start = (np.array(c) for c in zip(*legs))
-    # for each edge end: the point join_radius back along it, and the direction leaving the vertex
-    length = s[off[leg_edge + 1] - 1]
-    r = np.minimum(cfg.join_radius_m, 0.45 * length)
-    ok = r >= cfg.spacing_m
-    leg_vertex, leg_edge, leg_start, length, r = (a[ok] for a in (leg_vertex, leg_edge, leg_start, length, r))
-    dist = np.where(leg_start, r, length - r)
-    p = polylines.interp(dist, leg_edge, s, xy, off)
-    corner = np.where(leg_start[:, None], xy[off[leg_edge]], xy[off[leg_edge + 1] - 1])
-    d = p - corner
-    angle = np.arctan2(d[:, 1], d[:, 0])
+    leg_vertex, leg_edge, p, corner, angle = legs
     # every pair of legs at a vertex (i < j in the legs' order), vertex by vertex
     bounds = np.flatnonzero(np.r_[True, leg_vertex[1:] != leg_vertex[:-1], True])
     first, size = bounds[:-1], np.diff(bounds)
