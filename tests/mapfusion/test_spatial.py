@@ -1,0 +1,90 @@
+"""The cell index and the matcher's fast paths (issue 21) answer exactly what a brute-force search
+over every way-point answers."""
+
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+
+from mapfusion.matcher import lateral_bound_ok, map_pose, match, match_candidates, match_range
+from mapfusion.spatial import CellIndex
+
+angles = st.floats(-math.pi, math.pi)
+
+
+@given(st.integers(0, 400), st.floats(-300, 300), st.floats(-300, 300), st.floats(0.5, 120.0),
+       st.integers(0, 2**31 - 1), st.sampled_from([5.0, 20.0, 50.0]))
+def test_cell_query_is_every_point_within_the_radius(n, x, y, radius, seed, cell):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-250, 250, (n, 2))
+    yaw = rng.uniform(-math.pi, math.pi, n)
+    idx = CellIndex(xy, np.cos(yaw), np.sin(yaw), cell_m=cell)
+    got = idx.query(x, y, radius)
+    want = np.flatnonzero((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2 <= radius * radius)
+    assert sorted(got.tolist()) == want.tolist()
+
+
+def test_a_sparse_map_uses_the_binary_search_and_answers_the_same():
+    xy = np.array([[0.0, 0.0], [1e6, 1e6], [5.0, 3.0], [1e6 + 4.0, 1e6 - 2.0]])
+    idx = CellIndex(xy, np.ones(4), np.zeros(4), cell_m=1.0)  # 1e12 cells: no table
+    assert idx._start is None
+    assert sorted(idx.query(1e6, 1e6, 10.0).tolist()) == [1, 3]
+    assert sorted(idx.query(0.0, 0.0, 6.0).tolist()) == [0, 2]
+    assert idx.query(5e5, 5e5, 10.0).size == 0
+
+
+def _brute(road, x, y, yaw, radius):
+    d = np.hypot(road.xy_m[:, 0] - x, road.xy_m[:, 1] - y)
+    near = np.flatnonzero(d <= radius)
+    if near.size == 0:
+        return None
+    return match(road, x, y, yaw, radius, candidates=near)
+
+
+@given(i=st.integers(0, 10**6), dx=st.floats(-30, 30), dy=st.floats(-30, 30), yaw=angles,
+       radius=st.sampled_from([5.0, 20.0, 35.0]))
+def test_match_through_the_cells_is_the_brute_force_match(helsinki, i, dx, dy, yaw, radius):
+    j = i % len(helsinki)
+    x, y = float(helsinki.xy_m[j, 0] + dx), float(helsinki.xy_m[j, 1] + dy)
+    got, want = match(helsinki, x, y, yaw, radius), _brute(helsinki, x, y, yaw, radius)
+    assert (got is None) == (want is None)
+    if got is not None:
+        assert got.cost == want.cost and got.way_id == want.way_id and got.lateral_m == want.lateral_m
+
+
+@given(i=st.integers(0, 10**6), dx=st.floats(-25, 25), dy=st.floats(-25, 25), yaw=angles)
+def test_match_range_is_the_match_among_the_edges_points_in_range(helsinki, i, dx, dy, yaw):
+    e = i % len(helsinki.edge_u)
+    a, b = int(helsinki.edge_start[e]), int(helsinki.edge_end[e])
+    mid = (a + b) // 2
+    x, y = float(helsinki.xy_m[mid, 0] + dx), float(helsinki.xy_m[mid, 1] + dy)
+    got = match_range(helsinki, a, b, x, y, yaw, 20.0)
+    pts = np.arange(a, b)
+    inside = pts[np.hypot(helsinki.xy_m[a:b, 0] - x, helsinki.xy_m[a:b, 1] - y) <= 20.0]
+    if inside.size == 0:
+        assert got is None
+        return
+    k, _, _, _, d = match_candidates(x, y, yaw, helsinki.xy_m[inside], helsinki.yaw_cos[inside],
+                                     helsinki.yaw_sin[inside])
+    assert got is not None and got.cost == d and got.edge == e
+
+
+@given(i=st.integers(0, 10**6), dx=st.floats(-12, 12), dy=st.floats(-12, 12), yaw=angles,
+       pitch=st.floats(-0.4, 0.4), roll=st.floats(-0.4, 0.4), z=st.floats(-20, 20), width=st.floats(0.5, 12.0))
+def test_the_lateral_bound_never_says_on_the_road_when_the_map_pose_says_off(helsinki, i, dx, dy, yaw, pitch,
+                                                                          roll, z, width):
+    j = i % len(helsinki)
+    x, y = float(helsinki.xy_m[j, 0] + dx), float(helsinki.xy_m[j, 1] + dy)
+    m = match(helsinki, x, y, yaw)
+    if m is None:
+        return
+    pose = gtsam.Pose3(gtsam.Rot3.Ypr(yaw, pitch, roll), gtsam.Point3(x, y, z))
+    _, lateral = map_pose(m, pose)
+    if lateral_bound_ok(m, pose.matrix(), width):
+        assert lateral <= width
+    if lateral < width - 1e-6 * (1 + width + abs(m.longitudinal_m)):
+        assert lateral_bound_ok(m, pose.matrix(), width)  # the bound is tight, not merely safe
