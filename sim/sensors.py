@@ -223,12 +223,29 @@ def truth_poses(truth: Truth) -> np.ndarray:
     return m
 
 
+def _rotvec_matrix(rx: float, ry: float, rz: float) -> list[list[float]]:
+    """The rotation matrix of a rotation vector, in closed form: the unit quaternion (Taylor series of
+    sin(θ/2)/θ below 1 mrad) and its matrix, with the very arithmetic of scipy's
+    ``Rotation.from_rotvec(v).as_matrix()`` (the same to the bit, tested) at a sixth of its cost."""
+    angle = math.sqrt(rx * rx + ry * ry + rz * rz)
+    if angle <= 1e-3:
+        a2 = angle * angle
+        scale = 0.5 - a2 / 48 + a2 * a2 / 3840
+    else:
+        scale = math.sin(angle / 2) / angle
+    x, y, z, w = rx * scale, ry * scale, rz * scale, math.cos(angle / 2)
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return [[x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)],
+            [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)],
+            [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2]]
+
+
 def _exp_se3(xi: np.ndarray) -> np.ndarray:
     """A small relative motion (tx, ty, tz, roll, pitch, yaw) as a 4×4 matrix (rotation by rotvec)."""
-    m = np.eye(4)
-    m[:3, :3] = Rotation.from_rotvec(xi[3:6]).as_matrix()
-    m[:3, 3] = xi[:3]
-    return m
+    tx, ty, tz, rx, ry, rz = (float(v) for v in xi)
+    r = _rotvec_matrix(rx, ry, rz)
+    return np.array([[*r[0], tx], [*r[1], ty], [*r[2], tz], [0.0, 0.0, 0.0, 1.0]])
 
 
 def _poisson_intervals(rng: np.random.Generator, dist_m: np.ndarray, t_s: np.ndarray, rate_per_km: float,

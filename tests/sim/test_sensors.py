@@ -338,3 +338,18 @@ def test_the_wheel_leaves_every_other_sensor_as_it_was():
     assert a.wheel is None and b.wheel is not None
     assert np.array_equal(a.odometry.poses, b.odometry.poses) and np.array_equal(a.imu.gyro_radps, b.imu.gyro_radps)
     assert np.array_equal(a.gps.x_m, b.gps.x_m)
+
+
+@given(st.tuples(*[st.floats(-2.0, 2.0)] * 3), st.sampled_from([1e-6, 1e-4, 1e-3, 0.01, 1.0]))
+def test_the_closed_form_rotation_is_scipys_to_the_bit(v, size):
+    """The sensor model's rotation-vector exponential (issue 21: a sixth of scipy's cost per frame) gives
+    scipy's matrix to the bit, so every simulated drive is unchanged; and it is a rotation."""
+    from scipy.spatial.transform import Rotation
+
+    from sim.sensors import _exp_se3
+
+    rv = np.array(v) * size
+    m = _exp_se3(np.concatenate([[1.0, -2.0, 0.5], rv]))
+    assert np.array_equal(m[:3, :3], Rotation.from_rotvec(rv).as_matrix())
+    assert np.array_equal(m[:3, 3], [1.0, -2.0, 0.5]) and np.array_equal(m[3], [0.0, 0.0, 0.0, 1.0])
+    assert np.allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-12)
