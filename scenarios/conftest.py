@@ -9,6 +9,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 
 HERE = Path(__file__).resolve().parent
 FAMILIES = HERE / "families"
@@ -38,7 +40,23 @@ def load_baselines() -> dict:
     return json.loads(BASELINES.read_text()) if BASELINES.exists() else {}
 
 
+def _is_worker(config) -> bool:
+    """Under pytest-xdist: a worker process (the controller gathers their results, prints, writes)."""
+    return hasattr(config, "workerinput")
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):
+    """Controller side of pytest-xdist: the families a worker ran come back with it."""
+    got = getattr(node, "workeroutput", {}).get("scenario_results")
+    if got:
+        _RESULTS.update(json.loads(got))
+
+
 def pytest_sessionfinish(session, exitstatus):
+    if _is_worker(session.config):
+        session.config.workeroutput["scenario_results"] = json.dumps(_RESULTS)
+        return
     if session.config.getoption("--update-baselines") and _RESULTS:
         data = load_baselines()
         for fam in _RESULTS.values():
@@ -50,7 +68,7 @@ def pytest_sessionfinish(session, exitstatus):
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
-    if not _RESULTS:
+    if not _RESULTS or _is_worker(config):
         return
     from io import StringIO
 
