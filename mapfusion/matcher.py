@@ -136,7 +136,7 @@ def match(
         if not sl:
             return None
         b = cells.gather(cells.block, sl)
-        found = _best(b[:, 0], b[:, 1], b[:, 2], b[:, 3], x, y, yaw, angle_weight_m_per_deg, radius)
+        found = _best(b[0], b[1], b[2], b[3], x, y, yaw, angle_weight_m_per_deg, radius)
         if found is None:
             return None
         k, rev, e, a, d = found
@@ -183,8 +183,7 @@ def _best(px: np.ndarray, py: np.ndarray, c: np.ndarray, s: np.ndarray, x: float
     np.minimum(a, 1.0, out=a)
     np.arccos(a, out=a)
     np.degrees(a, out=a)
-    d = a * w
-    d += e
+    d = a + e if w == 1.0 else a * w + e  # (a · 1 is a: the default weight saves a pass)
     k = int(d.argmin())
     if e[k] > radius:  # the best lies outside the disc (rare: only when nothing inside matches well)
         d[e > radius] = np.inf
@@ -195,27 +194,29 @@ def _best(px: np.ndarray, py: np.ndarray, c: np.ndarray, s: np.ndarray, x: float
 
 
 def _make_match(road: RoadMap, i: int, rev: bool, x: float, y: float, e: float, a: float, d: float) -> Match:
-    px, py = float(road.xy_m[i, 0]), float(road.xy_m[i, 1])
-    draw_yaw = float(road.yaw_rad[i])
+    # (.item: a Python scalar straight from the array, the same value as float()/int() of an element)
+    px, py = road.xy_m.item(i, 0), road.xy_m.item(i, 1)
+    draw_yaw = road.yaw_rad.item(i)
     road_yaw = draw_yaw + math.pi if rev else draw_yaw
     road_yaw = (road_yaw + math.pi) % (2 * math.pi) - math.pi
     lon, lat = _offsets(x, y, px, py, road_yaw)
     lon_draw = -lon if rev else lon
-    lanes = int(road.way_lanes[road.way_index[i]])
+    way = road.way_index.item(i)
+    edge = road.edge.item(i)
     return Match(
         index=i,
         x_m=px,
         y_m=py,
         yaw_rad=road_yaw,
         reversed=rev,
-        way_id=int(road.way_ids[road.way_index[i]]),
-        edge=int(road.edge[i]),
-        is_join=bool(road.edge[i] < 0),
-        lanes=lanes,
+        way_id=road.way_ids.item(way),
+        edge=edge,
+        is_join=edge < 0,
+        lanes=road.way_lanes.item(way),
         lateral_m=abs(lat),
         signed_lateral_m=lat,
         longitudinal_m=lon,
-        along_m=float(road.s_m[i]) + lon_draw,
+        along_m=road.s_m.item(i) + lon_draw,
         distance_m=e,
         angle_deg=a,
         cost=d,

@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .errors import ConfigError, MapFileError, MapMismatchError
+from . import matcher as _matcher
 from . import polylines
 from .geometry import wrap_angle
 from .osm import DRIVABLE_HIGHWAYS, OsmWay, check_osm_path, read_drivable_ways
@@ -414,15 +415,11 @@ class RoadMap:
 
         See :func:`mapfusion.matcher.match`; ``yaw`` in radians (ENU, 0 = east, CCW).
         """
-        from .matcher import match
-
-        return match(self, x, y, yaw, radius, angle_weight_m_per_deg, candidates)
+        return _matcher.match(self, x, y, yaw, radius, angle_weight_m_per_deg, candidates)
 
     def match_many(self, x, y, yaw, radius: float = 20.0, angle_weight_m_per_deg: float = 1.0) -> dict:
         """Vectorised :meth:`match` over arrays of poses (see :func:`mapfusion.matcher.match_many`)."""
-        from .matcher import match_many
-
-        return match_many(self, x, y, yaw, radius, angle_weight_m_per_deg)
+        return _matcher.match_many(self, x, y, yaw, radius, angle_weight_m_per_deg)
 
     def stats(self) -> MapStats:
         """Counts and lengths of the processed map."""

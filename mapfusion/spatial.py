@@ -10,6 +10,7 @@ k-nearest queries.
 
 from __future__ import annotations
 
+import array
 import math
 
 import numpy as np
@@ -22,8 +23,8 @@ DENSE_CELLS_PER_POINT, DENSE_CELLS_MIN = 4, 1 << 20
 
 
 class CellIndex:
-    """Points (N, 2) in cells of ``cell_m``; ``block`` (N, 4) holds each point's x, y and its heading's
-    cosine and sine in cell order, ``order`` maps that order back to the point indices."""
+    """Points (N, 2) in cells of ``cell_m``; ``block`` (4, N) holds the points' x, y and their headings'
+    cosines and sines in cell order, ``order`` maps that order back to the point indices."""
 
     def __init__(self, xy_m: np.ndarray, cos: np.ndarray, sin: np.ndarray, cell_m: float = CELL_M) -> None:
         xy = np.asarray(xy_m, dtype=float).reshape(-1, 2)
@@ -38,13 +39,15 @@ class CellIndex:
         key = cy * self.ncol + cx
         self.order = np.argsort(key, kind="stable").astype(np.intp)
         self.key = key[self.order]
-        # one row a point (x, y, cos, sin): a query gathers one slice a row of cells, not four
-        self.block = np.column_stack([xy[self.order], np.asarray(cos, dtype=float)[self.order],
-                                      np.asarray(sin, dtype=float)[self.order]])
+        # x, y, cos, sin as the rows of one (4, N) array: a query gathers one slice a row of cells, not
+        # four, and each quantity stays contiguous for numpy's loops
+        self.block = np.ascontiguousarray(np.vstack([xy[self.order, 0], xy[self.order, 1],
+                                                     np.asarray(cos, dtype=float)[self.order],
+                                                     np.asarray(sin, dtype=float)[self.order]]))
         cells = self.ncol * self.nrow
-        self._start: list[int] | None = None
+        self._start: array.array | None = None  # (compact: a query's look-ups stay in few cache lines)
         if cells <= max(DENSE_CELLS_PER_POINT * n, DENSE_CELLS_MIN):
-            self._start = np.searchsorted(self.key, np.arange(cells + 1)).tolist()
+            self._start = array.array("q", np.searchsorted(self.key, np.arange(cells + 1)).astype(np.int64).tobytes())
 
     def __len__(self) -> int:
         return len(self.order)
@@ -69,10 +72,10 @@ class CellIndex:
         return [s for s in out if s[1] > s[0]]
 
     def gather(self, arr: np.ndarray, sl: list[tuple[int, int]]) -> np.ndarray:
-        """The rows of ``arr`` (in cell order) the slices select, as one array."""
+        """The entries of ``arr`` (in cell order, along its last axis) the slices select, as one array."""
         if len(sl) == 1:
-            return arr[sl[0][0]:sl[0][1]]
-        return np.concatenate([arr[a:b] for a, b in sl])
+            return arr[..., sl[0][0]:sl[0][1]]
+        return np.concatenate([arr[..., a:b] for a, b in sl], axis=-1)
 
     def point_of(self, sl: list[tuple[int, int]], k: int) -> int:
         """The point index of the k-th entry of the slices' concatenation."""
@@ -88,7 +91,7 @@ class CellIndex:
         if not sl:
             return np.empty(0, dtype=np.intp)
         b = self.gather(self.block, sl)
-        dx = b[:, 0] - x
-        dy = b[:, 1] - y
+        dx = b[0] - x
+        dy = b[1] - y
         inside = np.flatnonzero(dx * dx + dy * dy <= radius_m * radius_m)
         return self.gather(self.order, sl)[inside]
