@@ -52,7 +52,7 @@ def _as_pose3(pose) -> tuple[gtsam.Pose3, bool]:
     m = np.asarray(pose, dtype=float)
     if m.shape != (4, 4):
         raise EngineError(f"relative pose must be a gtsam.Pose3 or a 4×4 array, got shape {m.shape}")
-    return gtsam.Pose3(m), math.isfinite(float(m[:3].sum()))  # (a NaN or an infinity makes the sum one)
+    return gtsam.Pose3(m), math.isfinite(sum(m[:3].ravel().tolist()))  # (a NaN or an infinity makes the sum one)
 
 
 def _gps_sigma(sigma_m: float | None, default_m: float) -> float:
