@@ -53,24 +53,26 @@ class Step:
 
 def candidates(road: RoadMap, near: np.ndarray, x: float, y: float, yaw: float, w: float) -> list[Candidate]:
     """The best way-point of every (edge, direction) among the way-point indices ``near``
-    (join curves are not edges and are left out)."""
+    (join curves are not edges and are left out), forward then backward, edges ascending."""
     idx = near[~road.is_join[near]]
     if idx.size == 0:
         return []
     e = np.hypot(road.xy_m[idx, 0] - x, road.xy_m[idx, 1] - y)
     cos_d = np.clip(road.yaw_cos[idx] * math.cos(yaw) + road.yaw_sin[idx] * math.sin(yaw), -1.0, 1.0)
     a_fwd = np.degrees(np.arccos(cos_d))  # angle to the drawing direction, [0, 180]
-    edges = road.edge[idx]
+    points = idx.tolist()
+    edges = road.edge[idx].tolist()
     out = []
     for direction, a in ((1, a_fwd), (-1, 180.0 - a_fwd)):
-        d = e + w * a
-        order = np.lexsort((d, edges))  # by edge, then cost: the first of each edge is its best
-        first = np.ones(order.size, dtype=bool)
-        first[1:] = edges[order][1:] != edges[order][:-1]
-        sel = order[first]
-        best = idx[sel]
-        for i, edge, cost, along in zip(best.tolist(), edges[sel].tolist(), d[sel].tolist(), road.s_m[best].tolist()):
-            out.append(Candidate(edge, direction, i, cost, along))
+        d = (e + w * a).tolist()
+        best: dict[int, int] = {}  # edge → position of its least D (the first of equal ones)
+        for j, edge in enumerate(edges):
+            k = best.get(edge)
+            if k is None or d[j] < d[k]:
+                best[edge] = j
+        for edge in sorted(best):
+            j = best[edge]
+            out.append(Candidate(edge, direction, points[j], d[j], road.s_m.item(points[j])))
     return out
 
 
@@ -81,8 +83,9 @@ class RoadHypotheses:
         self.cfg = cfg
         self.logp: dict[Key, float] = {}
         self.along: dict[Key, float] = {}
-        self._len = road.edge_length_m
-        self._u, self._v = road.edge_u, road.edge_v
+        # as Python lists: the filter reads single entries, a numpy scalar read costs several times more
+        self._len = road.edge_length_m.tolist()
+        self._u, self._v = road.edge_u.tolist(), road.edge_v.tolist()
 
     def reset(self) -> None:
         """Forget every hypothesis (after a re-localisation, or when lost)."""
