@@ -14,6 +14,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -406,7 +407,12 @@ class RoadMap:
         return self._cells
 
     def query_radius(self, x_m: float, y_m: float, radius_m: float) -> np.ndarray:
-        """Indices of way-points within ``radius_m`` of (x, y), in no particular order."""
+        """Indices of way-points within ``radius_m`` of (x, y), in no particular order (ValueError for a
+        non-finite x, y or a NaN radius; an infinite radius holds every way-point)."""
+        if not (math.isfinite(x_m) and math.isfinite(y_m)) or math.isnan(radius_m):
+            raise ValueError(f"query_radius: x, y and the radius must be numbers, got {x_m!r}, {y_m!r}, {radius_m!r}")
+        if radius_m == math.inf:
+            return np.arange(len(self), dtype=np.intp)
         return self.cells.query(x_m, y_m, radius_m)
 
     def match(self, x: float, y: float, yaw: float, radius: float = 20.0, angle_weight_m_per_deg: float = 1.0,

@@ -88,3 +88,13 @@ def test_the_lateral_bound_never_says_on_the_road_when_the_map_pose_says_off(hel
         assert lateral <= width
     if lateral < width - 1e-6 * (1 + width + abs(m.longitudinal_m)):
         assert lateral_bound_ok(m, pose.matrix(), width)  # the bound is tight, not merely safe
+
+
+def test_query_radius_refuses_a_non_finite_centre_and_holds_everything_in_an_infinite_radius(helsinki):
+    import pytest
+
+    for bad in ((math.nan, 0.0, 20.0), (0.0, math.inf, 20.0), (0.0, 0.0, math.nan)):
+        with pytest.raises(ValueError, match="query_radius"):
+            helsinki.query_radius(*bad)
+    assert len(helsinki.query_radius(0.0, 0.0, math.inf)) == len(helsinki)
+    assert helsinki.query_radius(0.0, 0.0, -1.0).size == 0
