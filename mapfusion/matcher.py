@@ -99,12 +99,9 @@ def match_candidates(
     Returns ``(position in candidates, reversed, E, A, D)``; the caller guarantees at least one
     candidate. Ties go to the earlier candidate, in the drawing direction.
     """
-    e = np.hypot(cand_xy[:, 0] - x, cand_xy[:, 1] - y)
-    cos_d = cand_cos * math.cos(yaw) + cand_sin * math.sin(yaw)
-    a = np.degrees(np.arccos(np.minimum(np.abs(cos_d), 1.0)))
-    d = e + angle_weight_m_per_deg * a
-    k = int(d.argmin())
-    return k, bool(cos_d[k] < 0.0), float(e[k]), float(a[k]), float(d[k])
+    found = _best(cand_xy[:, 0], cand_xy[:, 1], cand_cos, cand_sin, x, y, yaw, angle_weight_m_per_deg, math.inf)
+    assert found is not None  # (no radius: every candidate counts)
+    return found
 
 
 def _offsets(x: float, y: float, px: float, py: float, road_yaw: float) -> tuple[float, float]:
@@ -174,8 +171,9 @@ def lateral_bound_ok(m: Match, pose_matrix: np.ndarray, width_m: float) -> bool:
 
 def _best(px: np.ndarray, py: np.ndarray, c: np.ndarray, s: np.ndarray, x: float, y: float, yaw: float, w: float,
           radius: float) -> tuple[int, bool, float, float, float] | None:
-    """:func:`match_candidates` over points given as coordinate and heading arrays, those farther than
-    ``radius`` left out; None when every one is."""
+    """The best of points given as coordinate and heading arrays by D = E + w·A over both travel
+    directions, those farther than ``radius`` left out: ``(position, reversed, E, A, D)``, or None when
+    every one is. Ties go to the earlier point."""
     e = np.hypot(px - x, py - y)
     cos_d = c * math.cos(yaw)
     cos_d += s * math.sin(yaw)

@@ -31,17 +31,22 @@ def level(p: gtsam.Pose3) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(p.x(), p.y(), 0.0))
 
 
-def planar_step(prev_odo: gtsam.Pose3, cur_odo: gtsam.Pose3, scale: float = 1.0) -> gtsam.Pose3:
-    """Relative motion projected on the horizontal plane with the odometry's own attitude:
-    the world displacement rotated by the previous yaw only; dz, roll and pitch dropped; the
-    translation times ``scale``."""
-    d = cur_odo.translation() - prev_odo.translation()
-    y0 = prev_odo.rotation().yaw()
-    y1 = cur_odo.rotation().yaw()
-    c, s = math.cos(y0), math.sin(y0)
-    dx, dy = float(d[0]), float(d[1])
+def planar_of(pose: gtsam.Pose3) -> tuple[float, float, float]:
+    """(x, y, yaw) of a pose."""
+    x, y, _ = pose.translation().tolist()
+    return x, y, pose.rotation().yaw()
+
+
+def planar_step(prev: tuple[float, float, float], cur: tuple[float, float, float], scale: float = 1.0) -> gtsam.Pose3:
+    """Relative motion between two odometry poses given as (x, y, yaw) (:func:`planar_of`), projected on
+    the horizontal plane with the odometry's own attitude: the world displacement rotated by the
+    previous yaw only (dz, roll and pitch dropped), the translation times ``scale``."""
+    x0, y0, yaw0 = prev
+    x1, y1, yaw1 = cur
+    dx, dy = x1 - x0, y1 - y0
+    c, s = math.cos(yaw0), math.sin(yaw0)
     t = gtsam.Point3((c * dx + s * dy) * scale, (-s * dx + c * dy) * scale, 0.0)
-    return gtsam.Pose3(gtsam.Rot3.Yaw(y1 - y0), t)
+    return gtsam.Pose3(gtsam.Rot3.Yaw(yaw1 - yaw0), t)
 
 
 @dataclass(frozen=True)
@@ -203,25 +208,19 @@ class Track:
         return level(pose) if self.state is StateModel.planar else pose
 
     def _planar(self, pose: gtsam.Pose3) -> tuple[float, float, float]:
-        """(x, y, yaw) of a raw pose; the last one read is kept, as the next frame's step starts from it
-        (by identity: a restated or levelled pose is a new object)."""
+        """:func:`planar_of` of a raw pose; the last one read is kept, as the next frame's step starts
+        from it (by identity: a restated or levelled pose is a new object)."""
         memo = self._planar_memo
         if memo is not None and memo[0] is pose:
             return memo[1]
-        x, y, _ = pose.translation().tolist()
-        got = (x, y, pose.rotation().yaw())
+        got = planar_of(pose)
         self._planar_memo = (pose, got)
         return got
 
     def step(self, k: int, scale: float) -> gtsam.Pose3:
         """The scaled relative motion into frame k in the engine's state model."""
-        if self.state is StateModel.planar:  # planar_step's arithmetic, each pose's yaw read once
-            x0, y0, yaw0 = self._planar(self.raw[k - 1])
-            x1, y1, yaw1 = self._planar(self.raw[k])
-            dx, dy = x1 - x0, y1 - y0
-            c, s = math.cos(yaw0), math.sin(yaw0)
-            t = gtsam.Point3((c * dx + s * dy) * scale, (-s * dx + c * dy) * scale, 0.0)
-            return gtsam.Pose3(gtsam.Rot3.Yaw(yaw1 - yaw0), t)
+        if self.state is StateModel.planar:
+            return planar_step(self._planar(self.raw[k - 1]), self._planar(self.raw[k]), scale)
         rel = self.rel[k]
         t = rel.translation() * scale
         return gtsam.Pose3(rel.rotation(), gtsam.Point3(*t))
