@@ -1,7 +1,7 @@
 """A cell index over the way-points for single radius queries (issue 21).
 
-A k-d tree answers one ball query in tens of microseconds, most of it spent building a Python
-list of the hits. Here the points are bucketed in square cells and stored cell by cell in
+A k-d tree answers one ball query in 11–15 µs here (issue 21's machine), much of it spent building
+a Python list of the hits. Here the points are bucketed in square cells and stored cell by cell in
 row-major order, so the cells a disc covers are one contiguous slice per row of cells: a query is
 a few table look-ups and slices of arrays that already hold each point's position and heading,
 with no tree walk and no per-hit Python object. The k-d tree stays for the batch matcher's
