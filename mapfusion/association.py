@@ -146,8 +146,8 @@ class MapAssociation:
         if other.size == 0:
             return False
         _, _, _, _, d = match_candidates(pred.x(), pred.y(), pred.rotation().yaw(), road.xy_m[other],
-                                         road.yaw_cos[other], road.yaw_sin[other],
-                                         self.cfg.angle_weight_m_per_deg)
+                                         road.legal_cos[other], road.legal_sin[other],
+                                         self.cfg.angle_weight_m_per_deg, road.two_way_sign[other])
         return d - m.cost < margin
 
     def gated(self, m: Match, pred: gtsam.Pose3, lateral_m: float, width_m: float, pos_sigma_m: float) -> bool:

@@ -2,9 +2,9 @@
 Markov model over the road graph's edges and travel directions.
 
 At every step the candidates are the (edge, direction) pairs with a way-point within the search
-radius of the predicted pose. A candidate's emission is the paper's matching cost taken as a
-negative log-likelihood, −D / ``hmm_emission_scale_m`` with D = E + w·A for the candidate's best
-way-point in its own direction. Transitions follow Newson & Krumm (2009): the network distance
+radius of the predicted pose (a one-way edge in its legal direction only). A candidate's emission
+is the paper's matching cost taken as a negative log-likelihood, −D / ``hmm_emission_scale_m``
+with D = E + w·A for the candidate's best way-point in its own direction. Transitions follow Newson & Krumm (2009): the network distance
 between the previous hypothesis and the candidate, along the edge or through the vertex the
 previous edge leads to, should equal the distance the odometry moved; the log-probability is
 −|d_network − d_odometry| / ``hmm_transition_scale_m``. A jump the graph does not join costs
@@ -14,7 +14,9 @@ previous edge leads to, should equal the distance the odometry moved; the log-pr
 The engine asks for a map prior only from the most probable road, and only when its posterior
 is at least ``hmm_min_posterior``: at a junction, beside a parallel road or above a tunnel the
 posterior is split and no prior is added until it resolves. The hypotheses also say when the
-estimate is *lost*: no candidate in range, or every candidate's D above ``hmm_lost_cost_m``.
+estimate is *lost*: no candidate in range, or every candidate's D above ``hmm_lost_cost_m``. A step
+with no road in range carries the hypotheses forward along their roads (a wide road's far side or a
+few metres beyond the radius say nothing about which road it was); being lost resets them.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ class Candidate:
 
     edge: int
     direction: int
-    index: int  # way-point index
+    index: int  # way-point index (-1: carried over a step with no road in range)
     cost: float  # D = E + w·A in this direction
     along_m: float  # s of the way-point along the edge (drawing direction)
 
@@ -62,9 +64,14 @@ def candidates(road: RoadMap, near: np.ndarray, x: float, y: float, yaw: float, 
     a_fwd = np.degrees(np.arccos(cos_d))  # angle to the drawing direction, [0, 180]
     points = idx.tolist()
     edges = road.edge[idx].tolist()
+    travel = road.travel[idx]
+    one_way = bool(travel.any())
     out = []
     for direction, a in ((1, a_fwd), (-1, 180.0 - a_fwd)):
-        d = (e + w * a).tolist()
+        d_arr = e + w * a
+        if one_way:  # a one-way edge is a candidate in its legal direction only
+            d_arr[travel == -direction] = math.inf
+        d = d_arr.tolist()
         best: dict[int, int] = {}  # edge → position of its least D (the first of equal ones)
         for j, edge in enumerate(edges):
             k = best.get(edge)
@@ -72,7 +79,8 @@ def candidates(road: RoadMap, near: np.ndarray, x: float, y: float, yaw: float, 
                 best[edge] = j
         for edge in sorted(best):
             j = best[edge]
-            out.append(Candidate(edge, direction, points[j], d[j], road.s_m.item(points[j])))
+            if d[j] < math.inf:
+                out.append(Candidate(edge, direction, points[j], d[j], road.s_m.item(points[j])))
     return out
 
 
@@ -123,8 +131,7 @@ class RoadHypotheses:
         the last step."""
         cfg = self.cfg
         if not cands:
-            self.reset()
-            return Step(None, 0.0, 0, False)
+            return self._coast(moved_m)
         emission = {(c.edge, c.direction): -c.cost / cfg.hmm_emission_scale_m for c in cands}
         new: dict[Key, float] = {}
         for c in cands:
@@ -146,6 +153,19 @@ class RoadHypotheses:
         best = by_key[keep[0]]
         explained = min(c.cost for c in cands) <= cfg.hmm_lost_cost_m
         return Step(best, math.exp(self.logp[keep[0]]), len(keep), explained)
+
+
+    def _coast(self, moved_m: float) -> Step:
+        """A step with no road in range: the hypotheses carried forward along their roads unchanged
+        (a gap of a few metres in the map's reach says nothing about which road it was; the engine
+        calls the estimate lost after ``hmm_lost_after_m`` of such steps)."""
+        if not self.logp:
+            return Step(None, 0.0, 0, False)
+        for (edge, direction), s in self.along.items():
+            self.along[(edge, direction)] = min(max(s + direction * moved_m, 0.0), self._len[edge])
+        key = max(self.logp, key=lambda k: self.logp[k])
+        best = Candidate(key[0], key[1], -1, math.inf, self.along[key])
+        return Step(best, math.exp(self.logp[key]), len(self.logp), False)
 
 
 def _logsumexp(values: list[float]) -> float:

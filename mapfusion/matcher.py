@@ -4,8 +4,11 @@ D = E + w·A, where E is the planar Euclidean distance to a way-point, A the rot
 degrees between the pose's orientation and the way-point's orientation,
 A = arccos(2⟨q_P, q_R⟩² − 1) — for orientations that differ only in yaw this is |Δyaw| in
 [0, 180] — and w (metres per degree, default 1) weighs direction against distance. Both travel
-directions of every road are candidates, so a road's best direction has A ≤ 90°. The lateral
-distance is L = |y of R⁻¹P|, R being the matched map pose.
+directions of a two-way road are candidates, so its best direction has A ≤ 90°; a one-way road
+offers only the direction one may drive it (``RoadMap.legal_cos``/``legal_sin``, ``two_way_sign``),
+so a vehicle is never matched against the traffic of a one-way carriageway (issue 16: a dual
+carriageway's other half, a few metres away, was the wrong association that held estimates off
+their road). The lateral distance is L = |y of R⁻¹P|, R being the matched map pose.
 
 Everything here is pure and vectorised with numpy: no Python loop per candidate.
 """
@@ -91,15 +94,20 @@ def match_candidates(
     cand_cos: np.ndarray,
     cand_sin: np.ndarray,
     angle_weight_m_per_deg: float = DEFAULT_ANGLE_WEIGHT_M_PER_DEG,
+    cand_sign: np.ndarray | None = None,
 ) -> tuple[int, bool, float, float, float]:
-    """Best candidate by D = E + w·A over both travel directions.
+    """Best candidate by D = E + w·A over the legal travel directions.
 
-    Candidates are given by position and the cosine and sine of their drawn heading. The
-    better of a road's two directions has A = arccos(|cos Δ|), reversed when cos Δ < 0.
-    Returns ``(position in candidates, reversed, E, A, D)``; the caller guarantees at least one
-    candidate. Ties go to the earlier candidate, in the drawing direction.
+    Candidates are given by position, the cosine and sine of their heading and ``cand_sign``: -1
+    where both directions are legal (the default), +1 where only the given heading is. The better
+    of a two-way road's directions has A = arccos(|cos Δ|), reversed when cos Δ < 0; a one-way
+    road's A = arccos(cos Δ), never reversed. Returns ``(position in candidates, reversed, E, A, D)``;
+    the caller guarantees at least one candidate. Ties go to the earlier candidate, in the heading's
+    direction.
     """
-    found = _best(cand_xy[:, 0], cand_xy[:, 1], cand_cos, cand_sin, x, y, yaw, angle_weight_m_per_deg, math.inf)
+    sign = np.full(len(cand_cos), -1.0) if cand_sign is None else cand_sign
+    found = _best(cand_xy[:, 0], cand_xy[:, 1], cand_cos, cand_sin, sign, x, y, yaw, angle_weight_m_per_deg,
+                  math.inf)
     assert found is not None  # (no radius: every candidate counts)
     return found
 
@@ -133,7 +141,7 @@ def match(
         if not sl:
             return None
         b = cells.gather(cells.block, sl)
-        found = _best(b[0], b[1], b[2], b[3], x, y, yaw, angle_weight_m_per_deg, radius)
+        found = _best(b[0], b[1], b[2], b[3], b[4], x, y, yaw, angle_weight_m_per_deg, radius)
         if found is None:
             return None
         k, rev, e, a, d = found
@@ -142,7 +150,8 @@ def match(
     if idx.size == 0:
         return None
     k, rev, e, a, d = match_candidates(
-        x, y, yaw, road.xy_m[idx], road.yaw_cos[idx], road.yaw_sin[idx], angle_weight_m_per_deg
+        x, y, yaw, road.xy_m[idx], road.legal_cos[idx], road.legal_sin[idx], angle_weight_m_per_deg,
+        road.two_way_sign[idx]
     )
     return _make_match(road, int(idx[k]), rev, x, y, e, a, d)
 
@@ -151,8 +160,8 @@ def match_range(road: RoadMap, start: int, stop: int, x: float, y: float, yaw: f
                 angle_weight_m_per_deg: float = DEFAULT_ANGLE_WEIGHT_M_PER_DEG) -> Match | None:
     """:func:`match` among the way-points ``start:stop`` (an edge's) within ``radius`` of (x, y)."""
     xy = road.xy_m[start:stop]
-    found = _best(xy[:, 0], xy[:, 1], road.yaw_cos[start:stop], road.yaw_sin[start:stop], x, y, yaw,
-                  angle_weight_m_per_deg, radius)
+    found = _best(xy[:, 0], xy[:, 1], road.legal_cos[start:stop], road.legal_sin[start:stop],
+                  road.two_way_sign[start:stop], x, y, yaw, angle_weight_m_per_deg, radius)
     if found is None:
         return None
     k, rev, e, a, d = found
@@ -169,16 +178,18 @@ def lateral_bound_ok(m: Match, pose_matrix: np.ndarray, width_m: float) -> bool:
     return abs(lat) <= width_m - 1e-9 * (1.0 + width_m + abs(m.longitudinal_m))
 
 
-def _best(px: np.ndarray, py: np.ndarray, c: np.ndarray, s: np.ndarray, x: float, y: float, yaw: float, w: float,
-          radius: float) -> tuple[int, bool, float, float, float] | None:
-    """The best of points given as coordinate and heading arrays by D = E + w·A over both travel
-    directions, those farther than ``radius`` left out: ``(position, reversed, E, A, D)``, or None when
-    every one is. Ties go to the earlier point."""
+def _best(px: np.ndarray, py: np.ndarray, c: np.ndarray, s: np.ndarray, sign: np.ndarray, x: float, y: float,
+          yaw: float, w: float, radius: float) -> tuple[int, bool, float, float, float] | None:
+    """The best of points given as coordinate, heading and sign arrays (:func:`match_candidates`) by
+    D = E + w·A over their legal travel directions, those farther than ``radius`` left out:
+    ``(position, reversed against the heading, E, A, D)``, or None when every one is. Ties go to the
+    earlier point."""
     e = np.hypot(px - x, py - y)
     cos_d = c * math.cos(yaw)
     cos_d += s * math.sin(yaw)
-    a = np.abs(cos_d)
-    np.minimum(a, 1.0, out=a)
+    a = sign * cos_d
+    np.maximum(a, cos_d, out=a)  # |cos Δ| where both directions are legal (sign -1), cos Δ where one is
+    np.clip(a, -1.0, 1.0, out=a)
     np.arccos(a, out=a)
     np.degrees(a, out=a)
     d = a + e if w == 1.0 else a * w + e  # (a · 1 is a: the default weight saves a pass)
@@ -188,12 +199,14 @@ def _best(px: np.ndarray, py: np.ndarray, c: np.ndarray, s: np.ndarray, x: float
         k = int(d.argmin())
         if d[k] == math.inf:
             return None
-    return k, bool(cos_d[k] < 0.0), float(e[k]), float(a[k]), float(d[k])
+    return k, bool(cos_d[k] < 0.0 and sign[k] < 0.0), float(e[k]), float(a[k]), float(d[k])
 
 
 def _make_match(road: RoadMap, i: int, rev: bool, x: float, y: float, e: float, a: float, d: float) -> Match:
     # (.item: a Python scalar straight from the array, the same value as float()/int() of an element)
     px, py = road.xy_m.item(i, 0), road.xy_m.item(i, 1)
+    if road.against_drawing.item(i):  # (rev came against the legal heading, which is the drawing's reverse)
+        rev = not rev
     draw_yaw = road.yaw_rad.item(i)
     road_yaw = draw_yaw + math.pi if rev else draw_yaw
     road_yaw = (road_yaw + math.pi) % (2 * math.pi) - math.pi
@@ -229,8 +242,9 @@ def _match_k(road: RoadMap, x, y, c, s, radius: float, w: float, k: int):
     nn = nn.reshape(n, k)
     valid = np.isfinite(dist)
     nn = np.where(valid, nn, 0)
-    cos_d = road.yaw_cos[nn] * c[:, None] + road.yaw_sin[nn] * s[:, None]
-    a = np.degrees(np.arccos(np.minimum(np.abs(cos_d), 1.0)))
+    cos_d = road.legal_cos[nn] * c[:, None] + road.legal_sin[nn] * s[:, None]
+    sign = road.two_way_sign[nn]
+    a = np.degrees(np.arccos(np.clip(np.maximum(sign * cos_d, cos_d), -1.0, 1.0)))
     d = np.where(valid, dist + w * a, np.inf)
     best = np.argmin(d, axis=1)
     rows = np.arange(n)
@@ -240,7 +254,7 @@ def _match_k(road: RoadMap, x, y, c, s, radius: float, w: float, k: int):
     exact = ~valid[:, -1] | (cost <= dist[:, -1])
     return {
         "index": np.where(valid[rows, best], nn[rows, best], -1),
-        "reversed": cos_d[rows, best] < 0.0,
+        "reversed": ((cos_d[rows, best] < 0.0) & (sign[rows, best] < 0.0)) ^ road.against_drawing[nn[rows, best]],
         "distance_m": dist[rows, best],
         "angle_deg": a[rows, best],
         "cost": cost,

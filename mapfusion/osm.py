@@ -56,6 +56,7 @@ class OsmWay:
     bridge: bool
     layer: int
     roundabout: bool
+    travel: int = 0  # +1: only in the drawing direction, -1: only against it, 0: both (travel_direction)
 
 
 def parse_lanes(value: str | None) -> int | None:
@@ -88,6 +89,18 @@ def _is_oneway(tags, highway: str, roundabout: bool) -> bool:
         return False
     # implied oneway (OSM wiki): motorways and roundabouts
     return highway in ("motorway", "motorway_link") or roundabout
+
+
+def travel_direction(tags, highway: str, roundabout: bool) -> int:
+    """Which way a vehicle may drive a way: +1 only in its drawing direction, -1 only against it
+    (``oneway=-1``), 0 both ways (a two-way road, or ``oneway=reversible``, whose direction changes
+    with the time of day)."""
+    v = tags.get("oneway", "")
+    if v == "-1":
+        return -1
+    if v == "reversible":
+        return 0
+    return 1 if _is_oneway(tags, highway, roundabout) else 0
 
 
 class _WayCollector(osmium.SimpleHandler):
@@ -131,6 +144,7 @@ class _WayCollector(osmium.SimpleHandler):
                 bridge=tags.get("bridge", "no") not in BRIDGE_VALUES_NO,
                 layer=parse_layer(tags.get("layer")),
                 roundabout=roundabout,
+                travel=travel_direction(tags, highway, roundabout),
             )
         )
 

@@ -34,7 +34,7 @@ from .spatial import CellIndex
 log = logging.getLogger(__name__)
 
 #: Bumped whenever the processed arrays change meaning, so stale caches are never read.
-CACHE_FORMAT = 5
+CACHE_FORMAT = 6
 
 
 #: The way-point spacing's range (RoadMapConfig.spacing_m).
@@ -101,6 +101,8 @@ class WayInfo:
     bridge: bool
     layer: int
     roundabout: bool
+    travel: int = 0
+    """Legal direction of travel: +1 only along the drawing direction, -1 only against it, 0 both."""
 
 
 @dataclass(frozen=True)
@@ -183,6 +185,7 @@ class RoadMap:
         self.edge_end = arrays["edge_end"]
         self.yaw_cos = np.cos(self.yaw_rad)
         self.yaw_sin = np.sin(self.yaw_rad)
+        self.travel, self.against_drawing, self.legal_cos, self.legal_sin, self.two_way_sign = legal_travel(self)
         self._tree: cKDTree | None = None
         self._cells: CellIndex | None = None
 
@@ -242,6 +245,7 @@ class RoadMap:
                 bridge=w.bridge,
                 layer=w.layer,
                 roundabout=w.roundabout,
+                travel=w.travel,
             )
             for w in osm_ways
         ]
@@ -403,7 +407,7 @@ class RoadMap:
     def cells(self) -> CellIndex:
         """The cell index of the way-points (built on first use: single radius queries and matches)."""
         if self._cells is None:
-            self._cells = CellIndex(self.xy_m, self.yaw_cos, self.yaw_sin)
+            self._cells = CellIndex(self.xy_m, self.legal_cos, self.legal_sin, self.two_way_sign)
         return self._cells
 
     def query_radius(self, x_m: float, y_m: float, radius_m: float) -> np.ndarray:
@@ -430,6 +434,28 @@ class RoadMap:
     def stats(self) -> MapStats:
         """Counts and lengths of the processed map."""
         return map_stats(self)
+
+
+def legal_travel(road: RoadMap) -> tuple[np.ndarray, ...]:
+    """Per way-point: ``travel`` (+1 only along the drawing, -1 only against it, 0 both ways),
+    ``against_drawing`` (the legal direction is against the drawing), the heading of travel a vehicle
+    may drive there (``legal_cos``, ``legal_sin``: the drawing direction, turned round on a way one may
+    drive only against it) and ``two_way_sign`` (-1.0 where both directions are legal, +1.0 on a
+    one-way road: the matcher's sign). Join curves inside junctions are taken as two-way: which turns a
+    junction allows is not in the map."""
+    per_way = np.array([w.travel for w in road.ways], dtype=np.int8)
+    travel = np.where(road.is_join, 0, per_way[road.way_index] if len(per_way) else 0).astype(np.int8)
+    against = travel < 0
+    flip = np.where(against, -1.0, 1.0)
+    return travel, against, road.yaw_cos * flip, road.yaw_sin * flip, np.where(travel == 0, -1.0, 1.0)
+
+
+def can_drive(road: RoadMap, edge: int, to_vertex: int) -> bool:
+    """Whether a vehicle may drive ``edge`` towards ``to_vertex`` (one of its two ends), by its way's
+    legal direction of travel."""
+    travel = road.ways[int(road.edge_way_index[edge])].travel
+    along_drawing = int(road.edge_v[edge]) == to_vertex
+    return travel == 0 or (travel > 0) == along_drawing
 
 
 def map_stats(road: RoadMap) -> MapStats:

@@ -23,10 +23,12 @@ DENSE_CELLS_PER_POINT, DENSE_CELLS_MIN = 4, 1 << 20
 
 
 class CellIndex:
-    """Points (N, 2) in cells of ``cell_m``; ``block`` (4, N) holds the points' x, y and their headings'
-    cosines and sines in cell order, ``order`` maps that order back to the point indices."""
+    """Points (N, 2) in cells of ``cell_m``; ``block`` (5, N) holds the points' x, y, their headings'
+    cosines and sines and a sign (the matcher's: -1 where both directions of travel are legal, +1 where
+    only the heading's) in cell order, ``order`` maps that order back to the point indices."""
 
-    def __init__(self, xy_m: np.ndarray, cos: np.ndarray, sin: np.ndarray, cell_m: float = CELL_M) -> None:
+    def __init__(self, xy_m: np.ndarray, cos: np.ndarray, sin: np.ndarray, sign: np.ndarray | None = None,
+                 cell_m: float = CELL_M) -> None:
         xy = np.asarray(xy_m, dtype=float).reshape(-1, 2)
         self.cell_m = float(cell_m)
         n = len(xy)
@@ -39,11 +41,12 @@ class CellIndex:
         key = cy * self.ncol + cx
         self.order = np.argsort(key, kind="stable").astype(np.intp)
         self.key = key[self.order]
-        # x, y, cos, sin as the rows of one (4, N) array: a query gathers one slice a row of cells, not
-        # four, and each quantity stays contiguous for numpy's loops
+        # x, y, cos, sin, sign as the rows of one (5, N) array: a query gathers one slice a row of cells,
+        # not five, and each quantity stays contiguous for numpy's loops
+        sign = np.full(n, -1.0) if sign is None else np.asarray(sign, dtype=float)
         self.block = np.ascontiguousarray(np.vstack([xy[self.order, 0], xy[self.order, 1],
                                                      np.asarray(cos, dtype=float)[self.order],
-                                                     np.asarray(sin, dtype=float)[self.order]]))
+                                                     np.asarray(sin, dtype=float)[self.order], sign[self.order]]))
         cells = self.ncol * self.nrow
         self._start: array.array | None = None  # (compact: a query's look-ups stay in few cache lines)
         if cells <= max(DENSE_CELLS_PER_POINT * n, DENSE_CELLS_MIN):

@@ -16,7 +16,7 @@ from enum import Enum
 import numpy as np
 
 from mapfusion.errors import ConfigError
-from mapfusion.roadmap import RoadMap
+from mapfusion.roadmap import RoadMap, can_drive
 
 
 class JunctionKind(str, Enum):
@@ -202,10 +202,14 @@ def stress_poses(road: RoadMap, cfg: StressConfig = StressConfig()) -> StressPos
                 i = _station(road, e, from_start, dist)
                 if i is None:
                     continue
-                # exit (away from the junction) and approach (towards it)
+                # exit (away from the junction) and approach (towards it), each where the road may be
+                # driven that way (a vehicle keeps to a one-way road's direction)
                 away = 1 if from_start else -1
-                rows.append((i, away, v))
-                rows.append((i, -away, v))
+                far = int(road.edge_v[e]) if from_start else int(road.edge_u[e])
+                if can_drive(road, e, far):
+                    rows.append((i, away, v))
+                if can_drive(road, e, v):
+                    rows.append((i, -away, v))
     if not rows:
         f, i = np.zeros(0), np.zeros(0, dtype=np.int64)
         return StressPoses(f, f, f, i, i, i, f, kinds)
@@ -355,8 +359,9 @@ def run_sequence_stress(road: RoadMap, cfg: StressConfig = StressConfig(), seq: 
         inc = [e for e, _ in ends[v]]
         for e_in in inc:
             for e_out in inc:
-                if e_out == e_in:
-                    continue
+                far = int(road.edge_u[e_out]) if int(road.edge_v[e_out]) == v else int(road.edge_v[e_out])
+                if e_out == e_in or not (can_drive(road, e_in, v) and can_drive(road, e_out, far)):
+                    continue  # (a vehicle enters and leaves along each road's legal direction)
                 path = np.concatenate([_towards(road, e_in, v, seq.approach_m),
                                        _towards(road, e_out, v, seq.approach_m)[::-1]])
                 true_edge = road.edge[path]

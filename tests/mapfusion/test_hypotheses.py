@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapfusion import RoadMap
+from mapfusion.roadmap import can_drive
 from mapfusion.config import FusionConfig, RoadTracking
 from mapfusion.hypotheses import RoadHypotheses, candidates
 from mapfusion.matcher import match
@@ -74,7 +75,12 @@ def _junction_drives(road: RoadMap):
     for e in range(len(road.edge_u)):
         ends.setdefault(int(road.edge_u[e]), []).append(e)
         ends.setdefault(int(road.edge_v[e]), []).append(e)
-    return [(v, a, b) for v, es in ends.items() if road.vertex_degree[v] >= 3 for a in es for b in es if a != b]
+    def other_end(e: int, v: int) -> int:
+        return int(road.edge_u[e]) if int(road.edge_v[e]) == v else int(road.edge_v[e])
+
+    # only the drives a vehicle may make: into the junction and out of it along each road's legal direction
+    return [(v, a, b) for v, es in ends.items() if road.vertex_degree[v] >= 3 for a in es for b in es
+            if a != b and can_drive(road, a, v) and can_drive(road, b, other_end(b, v))]
 
 
 def _ordered(road: RoadMap, e: int, v: int, towards: bool) -> np.ndarray:
@@ -143,3 +149,35 @@ def test_leaving_the_network_is_a_lost_event(tmp_path):
     (tmp_path / "single").mkdir()
     single = _drive_off_the_road(tmp_path / "single", FusionConfig())
     assert single.counters.lost_events == 0 and single.lost_s == 0.0  # the single-frame default never says so
+
+
+@pytest.mark.parametrize("tag, directions", [(None, {1, -1}), ("yes", {1}), ("-1", {-1})])
+def test_a_one_way_edge_is_a_candidate_in_its_legal_direction_only(tmp_path, tag, directions):
+    tags = {"highway": "primary", **({"oneway": tag} if tag else {})}
+    road = RoadMap.from_osm(write_osm(tmp_path, [(straight_road(300.0, 0.0), tags)]), cache=False)
+    for yaw in (0.0, math.pi, 1.0):  # with the drawing, against it, across: the heading never adds a direction
+        got = candidates(road, road.query_radius(150.0, 2.0, 20.0), 150.0, 2.0, yaw, 1.0)
+        assert {c.direction for c in got} == directions
+
+
+@settings(max_examples=30, deadline=None)
+@given(along=st.floats(200.0, 1500.0), gap_steps=st.integers(1, 8), backwards=st.booleans())
+def test_a_step_with_no_road_in_range_carries_the_hypotheses_forward(lone_road, along, gap_steps, backwards):
+    """A few metres out of the map's reach (a wide road's far side, a bridge) do not erase which road it
+    was: the posterior stays, the road's position moves on with the odometry, the step is unexplained."""
+    road = lone_road
+    h = RoadHypotheses(road, CFG)
+    (x0, y0), road_yaw = road.xy_m[0], float(road.yaw_rad[0])
+    heading = road_yaw + (math.pi if backwards else 0.0)
+    sign = -1.0 if backwards else 1.0
+    for k in range(5):
+        s = along + sign * 5.0 * k
+        st_ = _step(h, road, x0 + s * math.cos(road_yaw), y0 + s * math.sin(road_yaw), heading, 5.0)
+    before = h.posterior()
+    for _ in range(gap_steps):
+        gap = h.step([], 5.0)
+        assert gap.best is not None and (gap.best.edge, gap.best.direction) == (st_.best.edge, st_.best.direction)
+        assert not gap.explained and gap.posterior == pytest.approx(st_.posterior)
+    assert h.posterior() == pytest.approx(before)
+    moved = (gap.best.along_m - st_.best.along_m) * sign
+    assert moved == pytest.approx(5.0 * gap_steps)

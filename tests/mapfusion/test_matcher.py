@@ -265,3 +265,65 @@ def test_map_pose_bad_pose():
 
 
 # --------------------------------------------------------------------------- stress test
+
+
+# --------------------------------------------------------------------------- one-way roads (issue 16)
+@FIXTURE_OK
+@given(heading=angles, gap=st.floats(6.0, 20.0), frac=st.floats(0.0, 1.0), yaw_err=st.floats(-60.0, 60.0),
+       reverse_tag=st.booleans(), along=st.floats(50.0, 250.0))
+def test_a_dual_carriageway_is_matched_in_the_direction_of_travel(tmp_path, heading, gap, frac, yaw_err,
+                                                                  reverse_tag, along):
+    """Two one-way carriageways ``gap`` apart, one each way: a vehicle travelling along carriageway 1
+    is matched to it wherever it lies between them (the other is nearer for frac > 0.5), and the match
+    runs with the traffic. Carriageway 2 is either drawn against 1 (``oneway=yes``) or drawn the same way
+    and tagged ``oneway=-1``: both mean traffic against 1's."""
+    d = np.array([math.cos(heading), math.sin(heading)])
+    n = np.array([-d[1], d[0]])
+    r1 = straight_road(300.0, heading)
+    r2 = r1 + gap * n if reverse_tag else np.array([r1[1], r1[0]]) + gap * n
+    tags2 = {"highway": "primary", "oneway": "-1" if reverse_tag else "yes"}
+    road = _road(tmp_path, [(r1, {"highway": "primary", "oneway": "yes"}), (r2, tags2)])
+    x, y = along * d + frac * gap * n
+    m = road.match(x, y, heading + math.radians(yaw_err), radius=40.0)
+    assert m is not None and m.way_id == 1 and not m.reversed
+    assert abs(angle_deg(m.yaw_rad, heading)) < 1.0
+    # travelling the other way, the same point belongs to carriageway 2, whose legal heading is opposite
+    m2 = road.match(x, y, heading + math.pi + math.radians(yaw_err), radius=40.0)
+    assert m2 is not None and m2.way_id == 2 and m2.reversed == reverse_tag  # (against its drawing only if -1)
+    assert abs(angle_deg(m2.yaw_rad, heading + math.pi)) < 1.0
+
+
+def test_no_match_runs_against_a_one_way_road(helsinki):
+    """On a real city, single and batch matches of random poses always take a one-way road in its
+    legal direction (and a match's angle is then up to 180°, not folded to 90°)."""
+    rng = np.random.default_rng(11)
+    n = 2000
+    i = rng.integers(0, len(helsinki), n)
+    x = helsinki.xy_m[i, 0] + rng.normal(0, 6, n)
+    y = helsinki.xy_m[i, 1] + rng.normal(0, 6, n)
+    yaw = rng.uniform(-math.pi, math.pi, n)
+    out = helsinki.match_many(x, y, yaw, 30.0)
+    assert (helsinki.travel != 0).mean() > 0.2  # the test means something: Helsinki has many one-way roads
+    checked = 0
+    for j in range(n):
+        m = helsinki.match(x[j], y[j], yaw[j], 30.0)
+        if m is None:
+            continue
+        assert out["reversed"][j] == m.reversed or out["index"][j] != m.index
+        t = helsinki.travel[m.index]
+        if t != 0:
+            checked += 1
+            assert m.reversed == (t < 0)
+            assert abs(angle_deg(m.yaw_rad, yaw[j]) - m.angle_deg) < 1e-6
+    assert checked > 200
+
+
+@pytest.mark.parametrize("tags, highway, roundabout, want", [
+    ({"oneway": "yes"}, "residential", False, 1), ({"oneway": "-1"}, "residential", False, -1),
+    ({"oneway": "reversible"}, "primary", False, 0), ({"oneway": "no"}, "motorway", False, 0),
+    ({}, "motorway", False, 1), ({}, "primary", True, 1), ({}, "primary", False, 0), ({"oneway": "1"}, "primary", False, 1),
+])
+def test_the_legal_direction_of_travel_follows_the_osm_tags(tags, highway, roundabout, want):
+    from mapfusion.osm import travel_direction
+
+    assert travel_direction(tags, highway, roundabout) == want

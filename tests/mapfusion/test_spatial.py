@@ -68,8 +68,8 @@ def test_match_range_is_the_match_among_the_edges_points_in_range(helsinki, i, d
     if inside.size == 0:
         assert got is None
         return
-    k, _, _, _, d = match_candidates(x, y, yaw, helsinki.xy_m[inside], helsinki.yaw_cos[inside],
-                                     helsinki.yaw_sin[inside])
+    k, _, _, _, d = match_candidates(x, y, yaw, helsinki.xy_m[inside], helsinki.legal_cos[inside],
+                                     helsinki.legal_sin[inside], 1.0, helsinki.two_way_sign[inside])
     assert got is not None and got.cost == d and got.edge == e
 
 
