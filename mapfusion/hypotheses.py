@@ -2,13 +2,13 @@
 Markov model over the road graph's edges and travel directions.
 
 At every step the candidates are the (edge, direction) pairs with a way-point within the search
-radius of the predicted pose (a one-way edge in its legal direction only). A candidate's emission
-is the paper's matching cost taken as a negative log-likelihood, −D / ``hmm_emission_scale_m``
-with D = E + w·A for the candidate's best way-point in its own direction. Transitions follow
-Newson & Krumm (2009): the network distance between the previous hypothesis and the candidate,
-along the edge or through the vertex the previous edge leads to, should equal the distance the odometry moved; the log-probability is
-−|d_network − d_odometry| / ``hmm_transition_scale_m``. A jump the graph does not join costs
-``hmm_jump_penalty`` (so a wrong history can still be left). The forward filter keeps the
+radius of the predicted pose (a one-way edge in its legal direction only). A candidate's emission is
+the paper's matching cost taken as a negative log-likelihood, −D / ``hmm_emission_scale_m`` with D =
+E + w·A for the candidate's best way-point in its own direction. Transitions follow Newson & Krumm
+(2009): the network distance between the previous hypothesis and the candidate, along the edge or
+through the vertex the previous edge leads to, should equal the distance the odometry moved; the
+log-probability is −|d_network − d_odometry| / ``hmm_transition_scale_m``. A jump the graph does not
+join costs ``hmm_jump_penalty`` (so a wrong history can still be left). The forward filter keeps the
 ``hmm_beam`` most probable hypotheses, normalised to a posterior that sums to one.
 
 The engine asks for a map prior only from the most probable road, and only when its posterior
