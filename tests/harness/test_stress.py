@@ -69,3 +69,24 @@ def test_sequence_stress_json_and_the_sequence_beats_single_frames_at_a_y_split(
     # the same poses: the filter, started on the entering road, picks the exit road at least as well
     assert d["match_rate"] >= d["match_rate_single"] and d["match_rate"] >= 0.99
     assert d["stations"]["match_rate"] == pytest.approx(run_stress(RoadMap.from_osm(MAPS / "synthetic" / "y-split.osm")).rate)
+
+
+def test_stress_drives_keep_to_one_way_roads(monkeypatch):
+    """The grid's one-way streets and the roundabout's ring are driven only their legal way: no station
+    pose heads against one, and the sequence stress of the grid scores fewer drives than it would if
+    every road could be driven both ways."""
+    from mapfusion.harness import stress
+
+    for name in ("grid", "roundabout"):
+        road = RoadMap.from_osm(MAPS / "synthetic" / f"{name}.osm")
+        poses = stress_poses(road)
+        t = road.travel[poses.station]
+        legal_heading = road.yaw_rad[poses.station] + np.where(t < 0, np.pi, 0.0)
+        one_way = t != 0
+        assert one_way.sum() > 50
+        assert np.all(np.abs(angle_deg(poses.heading_rad[one_way], legal_heading[one_way])) < 1.0)
+    grid = RoadMap.from_osm(MAPS / "synthetic" / "grid.osm")
+    legal = sum(k.drives for k in stress.run_sequence_stress(grid).by_kind)
+    monkeypatch.setattr(stress, "can_drive", lambda road, edge, to_vertex: True)
+    every = sum(k.drives for k in stress.run_sequence_stress(grid).by_kind)
+    assert 0 < legal < every
