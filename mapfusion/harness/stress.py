@@ -117,6 +117,11 @@ def _edge_ends(road: RoadMap) -> dict[int, list[tuple[int, bool]]]:
     return ends
 
 
+def _far_end(road: RoadMap, e: int, v: int) -> int:
+    """The end of edge e that is not vertex v."""
+    return int(road.edge_u[e]) if int(road.edge_v[e]) == v else int(road.edge_v[e])
+
+
 def _station(road: RoadMap, e: int, from_start: bool, dist: float) -> int | None:
     """Index of the way-point of edge e nearest to ``dist`` from the given end, or None if too short."""
     a, b = int(road.edge_start[e]), int(road.edge_end[e])
@@ -205,8 +210,7 @@ def stress_poses(road: RoadMap, cfg: StressConfig = StressConfig()) -> StressPos
                 # exit (away from the junction) and approach (towards it), each where the road may be
                 # driven that way (a vehicle keeps to a one-way road's direction)
                 away = 1 if from_start else -1
-                far = int(road.edge_v[e]) if from_start else int(road.edge_u[e])
-                if can_drive(road, e, far):
+                if can_drive(road, e, _far_end(road, e, v)):
                     rows.append((i, away, v))
                 if can_drive(road, e, v):
                     rows.append((i, -away, v))
@@ -359,8 +363,7 @@ def run_sequence_stress(road: RoadMap, cfg: StressConfig = StressConfig(), seq: 
         inc = [e for e, _ in ends[v]]
         for e_in in inc:
             for e_out in inc:
-                far = int(road.edge_u[e_out]) if int(road.edge_v[e_out]) == v else int(road.edge_v[e_out])
-                if e_out == e_in or not (can_drive(road, e_in, v) and can_drive(road, e_out, far)):
+                if e_out == e_in or not (can_drive(road, e_in, v) and can_drive(road, e_out, _far_end(road, e_out, v))):
                     continue  # (a vehicle enters and leaves along each road's legal direction)
                 path = np.concatenate([_towards(road, e_in, v, seq.approach_m),
                                        _towards(road, e_out, v, seq.approach_m)[::-1]])
