@@ -154,7 +154,6 @@ class RoadHypotheses:
         explained = min(c.cost for c in cands) <= cfg.hmm_lost_cost_m
         return Step(best, math.exp(self.logp[keep[0]]), len(keep), explained)
 
-
     def _coast(self, moved_m: float) -> Step:
         """A step with no road in range: the hypotheses carried forward along their roads unchanged
         (a gap of a few metres in the map's reach says nothing about which road it was; the engine
