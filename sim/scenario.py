@@ -67,8 +67,9 @@ class WeatherKind(str, enum.Enum):
 class OdometryKind(str, enum.Enum):
     """The two odometry baselines of the paper, each alone or with the car's wheel speed and gyro."""
 
-    vo = "vo"  # stereo visual odometry, DROID-SLAM-like
+    vo = "vo"  # stereo visual odometry, fitted to a real frame-to-frame stereo VO on KITTI (issue 22)
     vio = "vio"  # stereo visual-inertial odometry, ORB-SLAM3-like
+    mono = "mono"  # monocular visual odometry: arbitrary, drifting scale (fitted to a real one, issue 22)
     recorded = "recorded"  # a real odometry's output on a recorded drive ([odometry] file, KITTI format)
     vo_wheel = "vo+wheel"  # the vo, plus wheel speed ([wheel]) and the IMU's gyro into the engine (issue 18)
     vio_wheel = "vio+wheel"  # the vio, plus wheel speed and gyro
@@ -193,7 +194,8 @@ class OdometryConfig:
     """``[odometry]``: the odometry kind; ``overrides`` (any other key of the table) replace
     fields of the kind × weather preset (see ``sim.sensors.OdometryParams``)."""
 
-    kind: OdometryKind = param(OdometryKind.vo, "vo (stereo VO) | vio (stereo VIO) | vo+wheel | vio+wheel (the same "
+    kind: OdometryKind = param(OdometryKind.vo, "vo (stereo VO) | vio (stereo VIO) | mono (monocular VO) | vo+wheel | "
+                               "vio+wheel (the same "
                                "with the car's wheel speed and gyro fused: [wheel]) | recorded (a real odometry's "
                                "output, with file).")
     overrides: tuple[tuple[str, float], ...] = param((), "Preset fields replaced by the scenario.")

@@ -25,7 +25,10 @@ from sim.sensors import (
 )
 from tests.helpers import synthetic_truth
 
-ZERO = OdometryParams(**{f.name: 0.0 for f in dataclasses.fields(OdometryParams)})
+#: Fields whose "no error" value is not 0: the odometry's unit (metres), the noise multiplier while
+#: standing, and the start bias's decay length (a length, never 0).
+_NEUTRAL = {"unit_m_min": 1.0, "unit_m_max": 1.0, "standstill_noise_factor": 1.0, "start_scale_bias_m": 200.0}
+ZERO = OdometryParams(**{f.name: _NEUTRAL.get(f.name, 0.0) for f in dataclasses.fields(OdometryParams)})
 
 
 def _quiet(**changes) -> OdometryParams:
@@ -353,3 +356,84 @@ def test_the_closed_form_rotation_is_scipys_to_the_bit(v, size):
     assert np.array_equal(m[:3, :3], Rotation.from_rotvec(rv).as_matrix())
     assert np.array_equal(m[:3, 3], [1.0, -2.0, 0.5]) and np.array_equal(m[3], [0.0, 0.0, 0.0, 1.0])
     assert np.allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- issue 22's error terms
+@given(seed=st.integers(0, 1000), lo=st.floats(0.005, 2.0), ratio=st.floats(1.0, 20.0))
+def test_the_odometry_unit_divides_every_position(seed, lo, ratio):
+    """A monocular VO's arbitrary unit: noise-free, the positions times the drawn unit are the truth's,
+    and the unit lies in [unit_m_min, unit_m_max]."""
+    truth = synthetic_truth("random", n=120, seed=seed)
+    out = simulate_odometry(truth, _quiet(unit_m_min=lo, unit_m_max=lo * ratio), np.random.default_rng(seed))
+    T = truth_poses(truth)
+    true_d = np.linalg.norm(T[-1, :3, 3] - T[0, :3, 3])
+    unit = true_d / np.linalg.norm(out.poses[-1, :3, 3])
+    assert lo * (1 - 1e-9) <= unit <= lo * ratio * (1 + 1e-9)
+    world = np.einsum("ij,njk->nik", T[0], out.poses * np.array([1, 1, 1, unit])[None, None, :])
+    world[:, 3, 3] = 1.0
+    assert np.abs(world[:, :3, 3] - T[out.frame_index, :3, 3]).max() < 1e-6 * max(1.0, true_d)
+
+
+def test_unit_range_the_wrong_way_round_is_an_error():
+    truth = synthetic_truth("straight", n=10)
+    with pytest.raises(ValueError, match="unit_m_max"):
+        simulate_odometry(truth, _quiet(unit_m_min=0.5, unit_m_max=0.1), np.random.default_rng(0))
+
+
+def test_turn_scale_error_matches_its_sigma():
+    """Every measured yaw change reads (1 + ε) times the true one: after a full circle the heading is
+    off by ε · 2π, ε ~ N(0, σ²) per run."""
+    truth = synthetic_truth("circle", n=629, speed_mps=10.0, radius_m=100.0)  # 2π rad in 62.8 s
+    turned = float(np.sum(np.diff(np.unwrap(truth.yaw_rad))))
+    err = _final_errors(truth, _quiet(turn_scale_sigma=0.05), SEEDS)
+    assert _sd_ok(err[:, 2], 0.05 * turned)
+
+
+def test_reverting_scale_wander_has_its_stationary_sigma():
+    """With a correlation length L, the scale error settles to σ = q · √(L / 2) instead of growing
+    without bound: read from the last step's length, 2 km (10 L) into the drive."""
+    truth = synthetic_truth("straight", n=2001, speed_mps=10.0)  # 1 m steps
+    q, L = 2e-3, 200.0
+    last = []
+    for s in SEEDS:
+        o = simulate_odometry(truth, _quiet(scale_rw_per_sqrt_m=q, scale_reversion_m=L), np.random.default_rng(s))
+        last.append(np.linalg.norm(o.poses[-1, :3, 3] - o.poses[-2, :3, 3]) - 1.0)
+    assert _sd_ok(np.array(last), q * math.sqrt(L / 2.0))
+
+
+def test_start_scale_bias_decays():
+    """The start-up scale error has its σ on the first step and is gone after many decay lengths."""
+    truth = synthetic_truth("straight", n=1501, speed_mps=10.0)  # 1.5 km in 1 m steps
+    first, last = [], []
+    for s in SEEDS:
+        o = simulate_odometry(truth, _quiet(start_scale_bias_sigma=0.2, start_scale_bias_m=100.0),
+                              np.random.default_rng(s))
+        steps = np.linalg.norm(np.diff(o.poses[:, :3, 3], axis=0), axis=1)
+        first.append(steps[0] - 1.0)
+        last.append(steps[-1] - 1.0)
+    assert _sd_ok(np.array(first) / math.exp(-1 / 100.0), 0.2)  # the first step is 1 m in
+    assert np.abs(last).max() < 0.2 * math.exp(-14.0) * 5
+
+
+def test_noise_while_standing_is_scaled_down():
+    truth = synthetic_truth("straight", n=2, speed_mps=0.0)
+    err = _final_errors(truth, _quiet(translation_noise_m=0.05, rotation_noise_rad=0.002,
+                                      standstill_noise_factor=0.1), range(2000))
+    assert _sd_ok(err[:, 0], 0.005) and _sd_ok(err[:, 2], 0.0002)
+
+
+@pytest.mark.parametrize("weather", ["clear", "rain", "heavy_rain"])
+def test_vio_sets_none_of_the_fitted_terms(weather):
+    """vio keeps the paper-calibrated model: none of issue 22's terms is set (unset, they draw nothing,
+    so its noise streams and its families' results are the same as before them)."""
+    p = odometry_preset("vio", weather)
+    assert (p.turn_scale_sigma, p.start_scale_bias_sigma, p.scale_reversion_m) == (0.0, 0.0, 0.0)
+    assert (p.unit_m_min, p.unit_m_max, p.standstill_noise_factor) == (1.0, 1.0, 1.0)
+
+
+@pytest.mark.parametrize("kind", ["vo", "mono"])
+def test_fitted_presets_differ_from_the_paper_calibrated_base(kind):
+    """vo and mono carry the fitted terms (docs/sensors.md); mono writes in an arbitrary unit."""
+    p = odometry_preset(kind, "clear")
+    assert p.rotation_noise_rad > OdometryParams().rotation_noise_rad
+    assert (p.unit_m_max < 1.0) == (kind == "mono")
