@@ -16,6 +16,8 @@ HERE = Path(__file__).resolve().parent
 FAMILIES = HERE / "families"
 BASELINES = HERE / "baselines.json"
 _RESULTS: dict[str, dict[str, dict]] = {}
+#: Text tables a test leaves for the end-of-session summary (the realism table), by title.
+REPORTS: dict[str, list[str]] = {}
 
 
 def pytest_addoption(parser):
@@ -51,11 +53,15 @@ def pytest_testnodedown(node, error):
     got = getattr(node, "workeroutput", {}).get("scenario_results")
     if got:
         _RESULTS.update(json.loads(got))
+    reports = getattr(node, "workeroutput", {}).get("scenario_reports")
+    if reports:
+        REPORTS.update(json.loads(reports))
 
 
 def pytest_sessionfinish(session, exitstatus):
     if _is_worker(session.config):
         session.config.workeroutput["scenario_results"] = json.dumps(_RESULTS)
+        session.config.workeroutput["scenario_reports"] = json.dumps(REPORTS)
         return
     if session.config.getoption("--update-baselines") and _RESULTS:
         data = load_baselines()
@@ -68,7 +74,12 @@ def pytest_sessionfinish(session, exitstatus):
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
-    if not _RESULTS or _is_worker(config):
+    if _is_worker(config):
+        return
+    for title, lines in REPORTS.items():
+        terminalreporter.write_sep("=", title)
+        terminalreporter.write("\n".join(lines) + "\n")
+    if not _RESULTS:
         return
     from io import StringIO
 

@@ -19,7 +19,7 @@ from .conftest import FAMILIES, family_results, load_baselines
 
 pytestmark = pytest.mark.sumo
 
-FAMILY_NAMES = ("clear", "rain", "rain-tunnel", "heavy-rain", "intersections", "kitti", "kitti-real")
+FAMILY_NAMES = ("clear", "rain", "rain-tunnel", "heavy-rain", "intersections", "kitti", "kitti-real", "kitti-realism")
 # the larger set: pytest -m full scenarios/ (kitti-real has one run per real odometry result: no larger set)
 FULL_NAMES = tuple(f"{f}-full" for f in FAMILY_NAMES if (FAMILIES / f"{f}-full.toml").exists())
 
