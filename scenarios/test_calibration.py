@@ -33,6 +33,11 @@ def test_drives_are_1_5_to_3_5_km(table):
         assert all(1.5 <= km <= 3.5 for km in r["km"]), r["km"]
 
 
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-23 (vo fitted to the real stereo VO, issue 22): mean of the "
+                   "localised runs 7.15 m, median 6.42 m, 1 of 8 de-localised (Helsinki seed 1, 39.3 m). The paper's "
+                   "1–5 m is DROID-SLAM's (windowed bundle adjustment); the development set's stereo VO is "
+                   "frame-to-frame CVO, whose own ATE on the KITTI drives is 3.3–61 m after alignment: a VO with "
+                   "its rotation noise and drift cannot also hold 1–5 m on 2–3.3 km drives")
 def test_clear_vo_1_to_5_m(table):
     r = table[("clear", "vo")]
     assert r["delocalized"] == 0
@@ -45,9 +50,9 @@ def test_clear_vio_1_to_6_m(table):
     assert 1.0 <= r["mean_ate_m"] <= 6.0
 
 
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-23: median 7.6 m. Issue 16's odometry σ (per metre, not per "
-                   "frame) lets the GPS window fix the heading from all its fixes, so the GPS-initialised baseline "
-                   "drifts less on the same simulated VO; re-calibrating the rain VO preset is issue 22's work")
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-23 (vo fitted to the real stereo VO, issue 22): median 26.4 m, "
+                   "5 of 8 de-localised (before the fit: median 7.6 m). Rain multiplies the fitted clear VO's noise "
+                   "(already 7 m on these drives, see the clear claim), so rain lands above the paper's 8–20 m")
 def test_rain_vo_8_to_20_m(table):
     r = table[("rain", "vo")]
     assert 8.0 <= r["median_ate_m"] <= 20.0

@@ -72,8 +72,9 @@ def test_rain_reduces_mean_ate_by_40_percent(request):
     assert _reduction(_ok(request, "rain")) >= 0.40
 
 
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-23 (one-way roads matched in their direction): mean ATE reduced by only 5%, 8.57 → 8.17 m (heavy-rain drives with "
-                   "GPS every 5 s; one Kotka run de-localises with and without the map); needs ≥ 40%")
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-23 (vo fitted to the real stereo VO, issue 22): mean ATE reduced "
+                   "by 20%, 15.54 → 12.47 m (heavy-rain drives with GPS every 5 s; one run de-localises with and "
+                   "without the map); needs ≥ 40%")
 def test_heavy_rain_reduces_mean_ate_by_40_percent(request):
     assert _reduction(_ok(request, "heavy-rain")) >= 0.40
 
@@ -83,6 +84,10 @@ def test_clear_never_worse_by_more_than_0_3_m(request):
     assert max(r["ate_mapfusion_m"] - r["ate_odometry_m"] for r in rows) <= 0.3
 
 
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-23 (vo fitted to the real stereo VO, issue 22): 96.0% (was "
+                   "97.7% with the paper-calibrated VO): the SUMO Helsinki runs fall to 91.5% and 53.7% (from 94.7% and "
+                   "74.4%) — with the fitted VO's heading noise the estimate reaches junctions further off its road and "
+                   "the single-frame match takes the crossing road; Berlin and Bayreuth stay at 99.1–99.8%")
 def test_intersections_match_rate_at_least_97_percent(request):
     """Over the whole family, the real Berlin and Bayreuth extracts included: without $MAPFUSION_DATA
     the claim cannot be checked (the synthetic and Helsinki runs alone measured 96.9%)."""
@@ -118,6 +123,10 @@ def test_real_odometry_30_percent_better_on_average(request):
 
 
 
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-23 (vo fitted to the real stereo VO, issue 22): Andorra seed 1 "
+                   "de-localises (24.9 m; odometry alone 22.0 m) and the zones' mean error is 5.84 m (1.8–11.5 m; was "
+                   "4.34 m); the map also makes Helsinki seed 1 worse (7.29 → 16.91 m). Mean ATE of the six vo+wheel runs "
+                   "15.0 → 10.2 m")
 def test_rain_tunnel_with_wheel_and_gyro_is_never_lost_and_within_5_m_in_the_zones(request):
     """Issue 18: with wheel speed and gyro beside the VO (odometry vo+wheel), no run de-localises,
     every run has estimates inside the GPS-denied, visually degraded zones (the estimate never stops

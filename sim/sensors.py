@@ -77,7 +77,7 @@ STANDSTILL_STEP_M = 0.05
 #: odometry-only ATE ranges (scenarios/test_calibration.py); vio keeps it with the IMU's smaller rotation
 #: drift. vo and mono are fitted (issue 22) to the real VO outputs in $MAPFUSION_DATA/vo/ on the five
 #: KITTI drives, statistic by statistic (`mapfusion odometry-stats`, means over the drives, simulated on
-#: the same drives' truth; docs/sensors.md has the table):
+#: the same drives' truth; docs/method.md "Sensors fitted to real odometry" has the table):
 #:   vo ← cvo_stereo_{00,01,02,05,07}.txt (frame-to-frame stereo, no loop closure):
 #:     rotation_noise_rad 2.2e-3 ← KITTI r_err 1.19–1.76 deg/100 m (mean 1.46) and the per-step yaw error
 #:       σ 0.7–2.4e-3 rad; yaw_bias_sigma 1e-4 rad/m ← |yaw drift| 0.24–1.07 deg/100 m (mean 0.62);
