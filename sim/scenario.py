@@ -195,9 +195,8 @@ class OdometryConfig:
     fields of the kind × weather preset (see ``sim.sensors.OdometryParams``)."""
 
     kind: OdometryKind = param(OdometryKind.vo, "vo (stereo VO) | vio (stereo VIO) | mono (monocular VO) | vo+wheel | "
-                               "vio+wheel (the same "
-                               "with the car's wheel speed and gyro fused: [wheel]) | recorded (a real odometry's "
-                               "output, with file).")
+                               "vio+wheel (the same with the car's wheel speed and gyro fused: [wheel]) | recorded "
+                               "(a real odometry's output, with file).")
     overrides: tuple[tuple[str, float], ...] = param((), "Preset fields replaced by the scenario.")
     file: str = param("", "kind = recorded: the odometry's poses in KITTI's format (12 numbers a line, camera frame: "
                       "x right, y down, z forward), one line per frame of the recorded drive (truth = a KITTI "

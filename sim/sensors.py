@@ -385,10 +385,10 @@ def simulate_odometry(truth: Truth, p: OdometryParams, rng: np.random.Generator,
             scale_rw = a * scale_rw + rng.normal(0.0, p.scale_rw_per_sqrt_m * math.sqrt(0.5 * revert * (1.0 - a * a)))
         else:
             scale_rw += rng.normal(0.0, p.scale_rw_per_sqrt_m * math.sqrt(ds)) if ds > 0 else 0.0
-        scale_start = start_bias * math.exp(-dist[k] / p.start_scale_bias_m) if start_bias else 0.0
         yaw_rate += rng.normal(0.0, p.yaw_bias_rw_rad_per_m_sqrt_m * math.sqrt(ds)) if ds > 0 else 0.0
         if lost[k]:
             continue  # no output: the frame is dropped
+        scale_start = start_bias * math.exp(-dist[k] / p.start_scale_bias_m) if start_bias else 0.0
         degraded = truth.visually_degraded[k]
         drift = p.tunnel_drift_factor if degraded else 1.0
         # the measured motion since the last output frame

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .results import Estimator, ate_key, finished
+
 #: The development drives and, per preset, the real output it is fitted on.
 DRIVES = ("00", "01", "02", "05", "07")
 REAL_METHOD = {"vo": "cvo_stereo", "mono": "trianflow"}
@@ -39,15 +41,20 @@ class StatRow:
     lateral_rmse_m: float
 
 
-def _row(drive: str, source: str, stats, t_err_metric: float | None) -> StatRow:
-    return StatRow(drive, source, float(t_err_metric if t_err_metric is not None else stats.kitti_t_err_percent),
-                   float(stats.kitti_r_err_deg_per_100m), abs(stats.yaw_drift_deg_per_100m), stats.scale_window_sigma,
-                   abs(stats.start_scale_bias or 0.0), stats.lateral_rmse_m)
+def _stats_row(drive: str, source: str, preset: str, t_s: np.ndarray, gt: np.ndarray, od: np.ndarray) -> StatRow:
+    """The statistics of odometry poses ``od`` against time-associated truth poses ``gt``: a metric
+    preset's t_err as written, a monocular one's after one fitted scale (as KITTI scores them)."""
+    from mapfusion.metrics import kitti_errors, odometry_stats
+
+    stats = odometry_stats(t_s, gt, od)
+    t_err = stats.kitti_t_err_percent if preset == "mono" else kitti_errors(gt, od).t_err_percent
+    return StatRow(drive, source, float(t_err), float(stats.kitti_r_err_deg_per_100m),
+                   abs(stats.yaw_drift_deg_per_100m), stats.scale_window_sigma, abs(stats.start_scale_bias or 0.0),
+                   stats.lateral_rmse_m)
 
 
 def real_stats(data: str | Path, preset: str) -> list[StatRow]:
     """The statistics of the real output the preset is fitted on, drive by drive."""
-    from mapfusion.metrics import kitti_errors, odometry_stats
     from mapfusion.replay import OdometryFormat, OdometryFrame, read_odometry
 
     d = Path(data)
@@ -57,8 +64,7 @@ def real_stats(data: str | Path, preset: str) -> list[StatRow]:
         t, gt = read_odometry(d / "kitti" / drive / "poses.txt", OdometryFormat.kitti, times, OdometryFrame.camera)
         _, od = read_odometry(d / "vo" / f"{REAL_METHOD[preset]}_{drive}.txt", OdometryFormat.kitti, times,
                               OdometryFrame.camera)
-        metric = kitti_errors(gt, od).t_err_percent if preset != "mono" else None
-        rows.append(_row(drive, "real", odometry_stats(t, gt, od), metric))
+        rows.append(_stats_row(drive, "real", preset, t, gt, od))
     return rows
 
 
@@ -76,19 +82,18 @@ def kitti_truth(data: str | Path, drive: str):
 def simulated_stats(data: str | Path, preset: str, weather: str = "clear", seeds: tuple[int, ...] = SEEDS,
                     overrides: dict | None = None) -> list[StatRow]:
     """The preset's statistics on each development drive's truth, the mean over ``seeds``."""
-    from mapfusion.metrics import kitti_errors, odometry_stats
     from sim.sensors import odometry_preset, simulate_odometry, truth_poses
 
     p = dataclasses.replace(odometry_preset(preset, weather), **(overrides or {}))
     rows = []
     for drive in DRIVES:
         truth = kitti_truth(data, drive)
+        poses = truth_poses(truth)
         per_seed = []
         for seed in seeds:
             out = simulate_odometry(truth, p, np.random.default_rng(seed), rain=weather != "clear")
-            gt = truth_poses(truth)[out.frame_index]
-            metric = kitti_errors(gt, out.poses).t_err_percent if preset != "mono" else None
-            per_seed.append(_row(drive, f"{preset} {weather}", odometry_stats(out.t_s, gt, out.poses), metric))
+            per_seed.append(_stats_row(drive, f"{preset} {weather}", preset, out.t_s, poses[out.frame_index],
+                                       out.poses))
         mean = {f.name: float(np.mean([getattr(r, f.name) for r in per_seed]))
                 for f in dataclasses.fields(StatRow) if f.name not in ("drive", "source")}
         rows.append(StatRow(drive, f"{preset} {weather}", **mean))
@@ -104,11 +109,13 @@ def within_real_range(sim: list[StatRow], real: list[StatRow], field: str, slack
             if not lo <= getattr(r, field) <= hi]
 
 
+def _better(ate_odometry_m: float, ate_mapfusion_m: float) -> str:
+    return "better" if ate_mapfusion_m < ate_odometry_m else "worse"
+
+
 def verdict(row: dict) -> str | None:
     """"better" or "worse": Map-Fusion's ATE against the same engine without the map (None: failed)."""
-    if "error" in row or row.get("ate_mapfusion_m") is None:
-        return None
-    return "better" if row["ate_mapfusion_m"] < row["ate_odometry_m"] else "worse"
+    return _better(row[ate_key(Estimator.odometry)], row[ate_key(Estimator.mapfusion)]) if finished(row) else None
 
 
 def verdict_pairs(sim_rows: list[dict], real_rows: list[dict]) -> list[tuple[str, str, str | None, str | None]]:
@@ -119,16 +126,17 @@ def verdict_pairs(sim_rows: list[dict], real_rows: list[dict]) -> list[tuple[str
     for drive in DRIVES:
         for preset, method in REAL_METHOD.items():
             real = [r for r in real_rows if f"{method}_{drive}" in r["scenario"]]
-            sims = [r for r in sim_rows if f"-{drive}-{preset}-" in r["scenario"] and verdict(r) is not None]
-            sim_v = (None if not sims else verdict({"ate_mapfusion_m": np.mean([r["ate_mapfusion_m"] for r in sims]),
-                                                     "ate_odometry_m": np.mean([r["ate_odometry_m"] for r in sims])}))
+            sims = [r for r in sim_rows if f"-{drive}-{preset}-" in r["scenario"] and finished(r)]
+            sim_v = (_better(float(np.mean([r[ate_key(Estimator.odometry)] for r in sims])),
+                             float(np.mean([r[ate_key(Estimator.mapfusion)] for r in sims]))) if sims else None)
             out.append((drive, preset, sim_v, verdict(real[0]) if real else None))
     return out
 
 
 def format_stats(rows: list[StatRow]) -> list[str]:
     """Aligned text lines, a row per drive and source."""
-    head = f"{'drive':>5} {'source':>14} {'t_err %':>8} {'r_err':>6} {'|drift|':>7} {'win σ':>6} {'|start|':>7} {'lat m':>6}"
+    head = (f"{'drive':>5} {'source':>14} {'t_err %':>8} {'r_err':>6} {'|drift|':>7} {'win σ':>6} {'|start|':>7} "
+            f"{'lat m':>6}")
     return [head] + [f"{r.drive:>5} {r.source:>14} {r.t_err_percent:8.2f} {r.r_err_deg_per_100m:6.2f} "
                      f"{r.yaw_drift_deg_per_100m:7.2f} {r.scale_window_sigma:6.3f} {r.start_scale_bias:7.3f} "
                      f"{r.lateral_rmse_m:6.1f}" for r in rows]
