@@ -553,6 +553,45 @@ class FusionConfig:
     hmm_lost_after_m: float = param(100.0, "The estimate is lost after this much driving with unexplained steps (or no "
                                     "road in range).", unit="m", min=0.0, exclusive_min=True,
                                     source="issue 16 (divergence detection)")
+    map_relocalisation: bool = param(False, "When the estimate is lost (no road explains it for hmm_lost_after_m), "
+                                     "re-localise it on the road network from the odometry's shape alone and "
+                                     "re-anchor the smoother there.", source="issue 17 (Brubaker et al. 2013, Lost!)")
+    reloc_particles: int = param(20000, "Particles of the global re-localisation, spread over the region's roads.",
+                                 min=10, max=2_000_000, source="issue 17; speed (10 Hz on one core, 2 km radius)")
+    reloc_step_m: float = param(5.0, "Odometry distance between two re-localisation steps.", unit="m", min=0.5,
+                                max=100.0, source="issue 17; as hmm_step_m")
+    reloc_sigma_m: float = param(1.5, "σ of a step's displacement mismatch (road against odometry), constant part.",
+                                 unit="m", min=0.01, max=100.0, source="issue 17; by measurement")
+    reloc_sigma_per_m: float = param(0.15, "σ of a step's displacement mismatch, per metre of the step (heading and "
+                                     "scale error).", unit="m/m", min=0.0, max=10.0, source="issue 17; by measurement")
+    reloc_scale_sigma: float = param(0.03, "Relative σ of each particle's distance per step (the odometry's scale "
+                                     "error).", unit="1", min=0.0, max=1.0, source="issue 22's fitted VO: 2.5% scale")
+    reloc_along_sigma_m: float = param(0.5, "σ added to each particle's distance per step (diffusion along the "
+                                       "road).", unit="m", min=0.0, max=100.0, source="issue 17; by measurement")
+    reloc_offset_gain: float = param(0.2, "Gain with which a particle's heading offset follows each step's heading "
+                                     "innovation (the odometry's yaw drift).", unit="1", min=0.0, max=1.0,
+                                     source="issue 17; by measurement")
+    reloc_offset_sigma_deg: float = param(0.3, "σ of the random walk of a particle's heading offset per step.",
+                                          unit="deg", min=0.0, max=90.0, source="issue 22's fitted VO yaw drift")
+    reloc_converge_radius_m: float = param(25.0, "Radius of the disc whose posterior mass decides convergence.",
+                                           unit="m", min=1.0, max=10000.0, source="issue 17; by measurement")
+    reloc_converge_mass: float = param(0.8, "Posterior mass one disc must hold to call the position found.",
+                                       unit="1", min=0.0, max=1.0, exclusive_min=True,
+                                       source="issue 17; by measurement")
+    reloc_min_distance_m: float = param(100.0, "Driving before a re-localisation may converge.", unit="m", min=0.0,
+                                        max=100000.0, source="issue 17; by measurement")
+    reloc_radius_m: float = param(300.0, "Radius of the search region around the last trusted position when lost.",
+                                  unit="m", min=1.0, max=100000.0, source="issue 17")
+    reloc_radius_per_m: float = param(0.5, "Growth of that radius per metre driven since the last trusted "
+                                      "position.", unit="m/m", min=0.0, max=10.0,
+                                      source="issue 17: a drift of up to half the distance driven")
+    reloc_max_radius_m: float = param(2000.0, "Largest search region.", unit="m", min=1.0, max=100000.0,
+                                      source="issue 17: 2 km in a city at 10 Hz on one core")
+    reloc_confirm_m: float = param(15.0, "A re-localisation within this distance of the current estimate only "
+                                   "confirms it (no re-anchoring).", unit="m", min=0.0, max=10000.0,
+                                   source="issue 17: never move an estimate that was not lost")
+    reloc_seed: int = param(0, "Seed of the re-localisation's random numbers (runs are reproducible).", min=0,
+                            max=2**31 - 1, source="reproducibility")
     relinearize_threshold: float = param(
         0.01,
         "ISAM2's relinearisation threshold (tangent-space step).",

@@ -1,0 +1,298 @@
+"""Global re-localisation on the road network from the odometry's shape alone (issue 17; after
+Brubaker, Geiger and Urtasun, "Lost! Leveraging the Crowd for Probabilistic Visual
+Self-Localization", CVPR 2013): no GPS, only the roads and the odometry.
+
+A particle is a position on the road graph — an edge, a direction of travel, a distance along the
+edge — and a heading offset (the map's heading minus the odometry's, the rotation that takes the
+odometry frame into the map). Particles start spread uniformly over the roads of a region (every
+road in each direction it may be driven), each with the offset that makes the vehicle drive along
+its road. Every ``reloc_step_m`` of odometry each particle drives the same distance along the graph
+(at a vertex it takes a random legal exit: the particles that turned wrong die at the next steps)
+and is weighted by how well its own displacement on the road agrees with the odometry's
+displacement turned by its offset: a Gaussian in the 2-D difference, σ = ``reloc_sigma_m`` +
+``reloc_sigma_per_m`` × distance. Turns at junctions, curvature and the lengths between turns are
+what separates the right place from the others; a straight road is the same everywhere and the
+posterior stays spread until the path turns. The offset follows the odometry's slow heading drift
+(a small gain on each step's heading innovation).
+
+The posterior has *converged* when one disc of ``reloc_converge_radius_m`` holds at least
+``reloc_converge_mass`` of it after at least ``reloc_min_distance_m`` of driving; the answer is that
+cluster's pose (on its road, heading from its offsets) and its spread.
+
+:class:`RoadParticles` is the filter (arrays only, no GTSAM); :class:`Relocaliser` feeds it from an
+odometry stream (planar poses in the odometry's frame) and is what the engine holds.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .config import FusionConfig
+from .roadmap import RoadMap
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Region", "Located", "RoadParticles", "Relocaliser"]
+
+#: Vertices a particle may pass in one step (a step longer than this many short edges stops at the last).
+MAX_HOPS = 16
+
+
+@dataclass(frozen=True)
+class Region:
+    """Where the vehicle is known to be: a disc in the map frame (m)."""
+
+    x_m: float
+    y_m: float
+    radius_m: float
+
+
+@dataclass(frozen=True)
+class Located:
+    """A converged posterior: the pose of its main cluster and how sure it is."""
+
+    x_m: float
+    y_m: float
+    yaw_rad: float  # the vehicle's heading in the map frame (the odometry's, turned by the offset)
+    offset_rad: float  # map heading minus odometry heading (the alignment's rotation)
+    edge: int
+    direction: int
+    along_m: float
+    mass: float  # posterior mass within reloc_converge_radius_m of the pose
+    spread_m: float  # RMS distance of that mass from the pose
+    yaw_spread_rad: float  # circular σ of its offsets
+    driven_m: float  # odometry distance since the filter started
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+class RoadParticles:
+    """The particle filter over positions on the road graph (see the module docstring)."""
+
+    def __init__(self, road: RoadMap, cfg: FusionConfig, seed: int = 0) -> None:
+        self.road, self.cfg = road, cfg
+        self.rng = np.random.default_rng(seed)
+        n_pts = int(np.count_nonzero(~road.is_join))  # edges' way-points come first, join curves after
+        self._n_pts = n_pts
+        lengths = road.edge_length_m
+        self._base = np.concatenate(([0.0], np.cumsum(lengths + 1.0)))[:-1]  # (a 1 m gap keeps edges apart)
+        self._glob = road.s_m[:n_pts].astype(np.float64) + self._base[road.edge[:n_pts]]
+        self._exits = _exits(road)
+        self.edge = np.zeros(0, dtype=np.int64)
+        self.direction = np.zeros(0, dtype=np.int64)
+        self.along = np.zeros(0)
+        self.offset = np.zeros(0)
+        self.logw = np.zeros(0)
+        self.driven_m = 0.0
+
+    def __len__(self) -> int:
+        return len(self.edge)
+
+    def start(self, region: Region, odometry_yaw_rad: float, n: int | None = None) -> int:
+        """Spread ``n`` particles (``reloc_particles``) uniformly over the road length inside the region,
+        in each legal direction, heading along their roads; returns how many way-points lay inside."""
+        road = self.road
+        near = road.query_radius(region.x_m, region.y_m, region.radius_m)
+        near = near[near < self._n_pts]
+        if near.size == 0:
+            self.edge = np.zeros(0, dtype=np.int64)
+            return 0
+        n = n or self.cfg.reloc_particles
+        pick = near[self.rng.integers(0, near.size, n)]
+        travel = road.travel[pick]
+        d = np.where(self.rng.random(n) < 0.5, 1, -1)
+        d = np.where(travel != 0, travel, d).astype(np.int64)
+        self.edge = road.edge[pick].astype(np.int64)
+        self.direction = d
+        self.along = road.s_m[pick].astype(np.float64)
+        yaw = self._heading(self.edge, self.along, d)
+        self.offset = _wrap(yaw - odometry_yaw_rad + self.rng.normal(0.0, math.radians(2.0), n))
+        self.logw = np.full(n, -math.log(n))
+        self.driven_m = 0.0
+        return int(near.size)
+
+    # ---------------------------------------------------------------- geometry on the graph
+    def positions(self, edge: np.ndarray | None = None, along: np.ndarray | None = None) -> np.ndarray:
+        """(n, 2) map positions of (edge, along) pairs (the particles' own by default)."""
+        edge = self.edge if edge is None else edge
+        along = self.along if along is None else along
+        road = self.road
+        g = self._base[edge] + along
+        i = np.clip(np.searchsorted(self._glob, g, side="right") - 1, road.edge_start[edge], road.edge_end[edge] - 1)
+        j = np.minimum(i + 1, road.edge_end[edge] - 1)
+        span = self._glob[j] - self._glob[i]
+        f = np.where(span > 0, (g - self._glob[i]) / np.where(span > 0, span, 1.0), 0.0)[:, None]
+        return road.xy_m[i] * (1.0 - f) + road.xy_m[j] * f
+
+    def _heading(self, edge: np.ndarray, along: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        road = self.road
+        g = self._base[edge] + along
+        i = np.clip(np.searchsorted(self._glob, g, side="right") - 1, road.edge_start[edge], road.edge_end[edge] - 1)
+        return road.yaw_rad[i] + np.where(direction < 0, math.pi, 0.0)
+
+    def _drive(self, distance: np.ndarray) -> None:
+        """Each particle drives its own distance along the graph, taking a random legal exit at a vertex."""
+        road, exits = self.road, self._exits
+        along = self.along + self.direction * distance
+        length = road.edge_length_m[self.edge]
+        for _ in range(MAX_HOPS):
+            over = np.flatnonzero((along > length) | (along < 0.0))
+            if over.size == 0:
+                break
+            e, d = self.edge[over], self.direction[over]
+            rest = np.where(d > 0, along[over] - length[over], -along[over])  # beyond the vertex
+            key = 2 * e + (d < 0)
+            lo, hi = exits.start[key], exits.start[key + 1]
+            pick = lo + np.floor(self.rng.random(over.size) * (hi - lo)).astype(np.int64)
+            dead = hi == lo
+            pick = np.where(dead, 0, pick)
+            ne = np.where(dead, e, exits.edge[pick] if exits.edge.size else e)
+            nd = np.where(dead, -d, exits.direction[pick] if exits.edge.size else -d)
+            nl = road.edge_length_m[ne]
+            self.edge[over], self.direction[over], length[over] = ne, nd, nl
+            along[over] = np.where(nd > 0, rest, nl - rest)
+        self.along = np.clip(along, 0.0, length)
+
+    # ---------------------------------------------------------------- the filter
+    def step(self, moved_m: float, chord_odo_xy: np.ndarray) -> None:
+        """One filter step: the odometry drove ``moved_m`` (path length, m) and its displacement was
+        ``chord_odo_xy`` (2,) in the odometry frame (m)."""
+        if len(self) == 0 or moved_m <= 0.0:
+            return
+        cfg, rng, n = self.cfg, self.rng, len(self)
+        before = self.positions()
+        noise = 1.0 + rng.normal(0.0, cfg.reloc_scale_sigma, n)
+        self._drive(np.maximum(moved_m * noise + rng.normal(0.0, cfg.reloc_along_sigma_m, n), 0.0))
+        after = self.positions()
+        c, s = np.cos(self.offset), np.sin(self.offset)
+        ox, oy = chord_odo_xy
+        ex = after[:, 0] - before[:, 0] - (c * ox - s * oy)
+        ey = after[:, 1] - before[:, 1] - (s * ox + c * oy)
+        sigma = cfg.reloc_sigma_m + cfg.reloc_sigma_per_m * moved_m
+        self.logw += -0.5 * (ex * ex + ey * ey) / (sigma * sigma)
+        chord = math.hypot(ox, oy)
+        if chord > 1.0:  # the offset follows the odometry's heading drift
+            road_dir = np.arctan2(after[:, 1] - before[:, 1], after[:, 0] - before[:, 0])
+            innov = _wrap(road_dir - math.atan2(oy, ox) - self.offset)
+            moved_on_road = np.hypot(after[:, 0] - before[:, 0], after[:, 1] - before[:, 1]) > 0.5 * chord
+            self.offset = _wrap(self.offset + np.where(moved_on_road, cfg.reloc_offset_gain * innov, 0.0))
+        self.offset = _wrap(self.offset + rng.normal(0.0, math.radians(cfg.reloc_offset_sigma_deg), n))
+        self.logw -= _logsumexp(self.logw)
+        self.driven_m += moved_m
+        if 1.0 / float(np.sum(np.exp(2.0 * self.logw))) < 0.5 * n:
+            self._resample()
+
+    def _resample(self) -> None:
+        n = len(self)
+        w = np.exp(self.logw)
+        cum = np.cumsum(w)
+        cum[-1] = 1.0
+        idx = np.searchsorted(cum, (self.rng.random() + np.arange(n)) / n)
+        self.edge, self.direction = self.edge[idx], self.direction[idx]
+        self.along, self.offset = self.along[idx], self.offset[idx]
+        self.logw = np.full(n, -math.log(n))
+
+    def located(self, odometry_yaw_rad: float) -> Located | None:
+        """The main cluster's pose when the posterior has converged (see the module docstring), else None;
+        its heading is the odometry's current heading turned by the cluster's mean offset."""
+        cfg = self.cfg
+        if len(self) == 0 or self.driven_m < cfg.reloc_min_distance_m:
+            return None
+        xy, w = self.positions(), np.exp(self.logw)
+        r = cfg.reloc_converge_radius_m
+        cell = np.floor(xy / r).astype(np.int64)
+        keys, inv = np.unique(cell[:, 0] * 1_000_003 + cell[:, 1], return_inverse=True)
+        best = int(np.argmax(np.bincount(inv, weights=w, minlength=len(keys))))
+        centre = np.average(xy[inv == best], axis=0, weights=w[inv == best] + 1e-300)
+        for _ in range(2):  # the cell's mass, re-centred on the disc around it
+            inside = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) <= r
+            centre = np.average(xy[inside], axis=0, weights=w[inside] + 1e-300)
+        mass = float(w[inside].sum())
+        if mass < cfg.reloc_converge_mass:
+            return None
+        wi = w[inside] / w[inside].sum()
+        d2 = np.sum((xy[inside] - centre) ** 2, axis=1)
+        k = int(np.flatnonzero(inside)[np.argmin(d2)])  # the particle nearest the centre gives the road
+        off = math.atan2(float(np.sum(wi * np.sin(self.offset[inside]))), float(np.sum(wi * np.cos(self.offset[inside]))))
+        resultant = math.hypot(float(np.sum(wi * np.sin(self.offset[inside]))),
+                               float(np.sum(wi * np.cos(self.offset[inside]))))
+        yaw_spread = math.sqrt(max(-2.0 * math.log(max(resultant, 1e-12)), 0.0))
+        heading = math.remainder(odometry_yaw_rad + off, 2.0 * math.pi)
+        return Located(float(xy[k, 0]), float(xy[k, 1]), heading, off, int(self.edge[k]), int(self.direction[k]),
+                       float(self.along[k]), mass, float(math.sqrt(np.sum(wi * d2))), yaw_spread, self.driven_m)
+
+
+@dataclass(frozen=True)
+class _Exits:
+    """For each (edge, direction) key = 2·edge + (direction < 0): the legal (edge, direction) pairs
+    leaving its exit vertex, as rows ``start[key]:start[key + 1]`` of ``edge``/``direction``."""
+
+    start: np.ndarray
+    edge: np.ndarray
+    direction: np.ndarray
+
+
+def _exits(road: RoadMap) -> _Exits:
+    """The successors of every (edge, direction): the other edges at its exit vertex that may be
+    driven away from it (no U-turn onto the same edge unless it is a dead end, handled by the caller)."""
+    n_edges = len(road.edge_u)
+    travel = np.array([road.ways[int(w)].travel for w in road.edge_way_index], dtype=np.int64) if n_edges else \
+        np.zeros(0, dtype=np.int64)
+    leaving: dict[int, list[tuple[int, int]]] = {}
+    for e, (u, v) in enumerate(zip(road.edge_u.tolist(), road.edge_v.tolist())):
+        if travel[e] >= 0:
+            leaving.setdefault(u, []).append((e, 1))
+        if travel[e] <= 0:
+            leaving.setdefault(v, []).append((e, -1))
+    rows: list[list[tuple[int, int]]] = []
+    for e, (u, v) in enumerate(zip(road.edge_u.tolist(), road.edge_v.tolist())):
+        for d, vertex in ((1, v), (-1, u)):
+            rows.append([x for x in leaving.get(vertex, []) if x[0] != e])
+    counts = np.array([len(r) for r in rows], dtype=np.int64)
+    flat = [x for r in rows for x in r]
+    return _Exits(np.concatenate(([0], np.cumsum(counts))).astype(np.int64),
+                  np.array([x[0] for x in flat], dtype=np.int64), np.array([x[1] for x in flat], dtype=np.int64))
+
+
+def _logsumexp(v: np.ndarray) -> float:
+    m = float(np.max(v))
+    return m if m == -math.inf else m + math.log(float(np.sum(np.exp(v - m))))
+
+
+class Relocaliser:
+    """Feeds :class:`RoadParticles` from an odometry stream of planar poses (x, y, yaw in the odometry's
+    frame, metres after the odometry's scale) and says where the vehicle is once it has converged."""
+
+    def __init__(self, road: RoadMap, cfg: FusionConfig, region: Region, seed: int = 0) -> None:
+        self.particles = RoadParticles(road, cfg, seed)
+        self.region = region
+        self.cfg = cfg
+        self._anchor: tuple[float, float] | None = None  # odometry position at the last filter step
+        self._last: tuple[float, float] | None = None
+        self._moved = 0.0
+        self.way_points_in_region = 0
+
+    def add(self, x: float, y: float, yaw: float) -> Located | None:
+        """One odometry pose; the converged answer, or None (not yet, or nothing in the region)."""
+        if self._anchor is None:
+            self._anchor = self._last = (x, y)
+            self.way_points_in_region = self.particles.start(self.region, yaw)
+            log.info("re-localising in a %.0f m region around (%.0f, %.0f): %d particles on %d way-points",
+                     self.region.radius_m, self.region.x_m, self.region.y_m, len(self.particles),
+                     self.way_points_in_region)
+            return None
+        assert self._last is not None
+        self._moved += math.hypot(x - self._last[0], y - self._last[1])
+        self._last = (x, y)
+        if self._moved < self.cfg.reloc_step_m:
+            return None
+        chord = np.array([x - self._anchor[0], y - self._anchor[1]])
+        self.particles.step(self._moved, chord)
+        self._anchor, self._moved = (x, y), 0.0
+        return self.particles.located(yaw)
