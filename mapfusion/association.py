@@ -57,15 +57,17 @@ class MapAssociation:
         self._moved_m = math.inf  # odometry distance since the last filter step (inf: step now)
         self._last: Step | None = None
         self._unexplained_m = 0.0
-        self.lost = False  # no hypothesis explains the estimate (hmm only)
+        self.lost = False  # no road explains the estimate (lost_events: hmm, or single-frame with map_relocalisation)
+        self.became_lost = False  # set when the estimate becomes lost; the engine clears it
         self._since_prior_m = math.inf  # odometry distance since the last map prior
 
     def reset(self) -> None:
         """Forget the last road (after a re-localisation)."""
         self.edge = -1
+        self._unexplained_m, self.lost = 0.0, False
         if self.hmm is not None:
             self.hmm.reset()
-            self._moved_m, self._last, self._unexplained_m, self.lost = math.inf, None, 0.0, False
+            self._moved_m, self._last = math.inf, None
 
     def _tracked_match(self, pred: gtsam.Pose3, moved_m: float) -> tuple[Match | None, bool]:
         """The match on the most probable road of the hypotheses, and whether it is confident. The
@@ -81,7 +83,7 @@ class MapAssociation:
             step_m = 0.0 if self._moved_m == math.inf else self._moved_m
             self._last = self.hmm.step(candidates(road, near, x, y, yaw, w), step_m)
             self._moved_m = 0.0
-            self._watch_lost(self._last, step_m)
+            self._watch_lost(self._last.explained, step_m)
         st = self._last
         if st is None or st.best is None:
             return None, False
@@ -95,17 +97,23 @@ class MapAssociation:
             m = match(road, x, y, yaw, radius, w, candidates=on_edge) if on_edge.size else None
         return m, m is not None and st.posterior >= cfg.hmm_min_posterior
 
-    def _watch_lost(self, st: Step, moved_m: float) -> None:
+    def _watch_lost(self, explained: bool, moved_m: float) -> None:
         """Lost after ``hmm_lost_after_m`` of unexplained steps; found again at the next explained one."""
-        if st.explained:
+        if explained:
             self._unexplained_m, self.lost = 0.0, False
             return
         self._unexplained_m += moved_m
         if not self.lost and self._unexplained_m >= self.cfg.hmm_lost_after_m:
             self.lost = True
+            self.became_lost = True
             self.counters.lost_events += 1
-            assert self.hmm is not None
-            self.hmm.reset()
+            if self.hmm is not None:
+                self.hmm.reset()
+
+    @property
+    def unexplained_m(self) -> float:
+        """Odometry distance since a road last explained the estimate."""
+        return self._unexplained_m
 
     def match(self, pred: gtsam.Pose3) -> Match | None:
         """The best way-point for a predicted pose (with continuity: among the roads joined to the
@@ -166,6 +174,8 @@ class MapAssociation:
             m, confident = self._tracked_match(pred, moved_m)
         else:
             m, confident = self.match(pred), False
+            if self.cfg.map_relocalisation:  # (the single-frame path watches for lost only when it can act on it)
+                self._watch_lost(m is not None and m.cost <= self.cfg.hmm_lost_cost_m, moved_m)
         self._since_prior_m += moved_m
         if m is None:
             return None, None

@@ -556,7 +556,7 @@ class FusionConfig:
     map_relocalisation: bool = param(False, "When the estimate is lost (no road explains it for hmm_lost_after_m), "
                                      "re-localise it on the road network from the odometry's shape alone and "
                                      "re-anchor the smoother there.", source="issue 17 (Brubaker et al. 2013, Lost!)")
-    reloc_particles: int = param(20000, "Particles of the global re-localisation, spread over the region's roads.",
+    reloc_particles: int = param(60000, "Particles of the global re-localisation, spread over the region's roads.",
                                  min=10, max=2_000_000, source="issue 17; speed (10 Hz on one core, 2 km radius)")
     reloc_step_m: float = param(5.0, "Odometry distance between two re-localisation steps.", unit="m", min=0.5,
                                 max=100.0, source="issue 17; as hmm_step_m")

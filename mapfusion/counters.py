@@ -27,6 +27,7 @@ class Counters:
     updates: int = 0
     lost_events: int = 0  # road hypotheses: the estimate lost (issue 16)
     odometry_vetoed: int = 0  # odometry steps that disagreed with wheel + gyro: replaced by theirs (issue 18)
+    map_relocalisations: int = 0  # the vehicle found on the road network without GPS (issue 17)
     wheel_frames: int = 0  # frames wheel + gyro made alone, the odometry silent (issue 18)
 
     @property

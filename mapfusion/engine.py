@@ -25,24 +25,22 @@ import numpy as np
 
 from . import factors
 from .association import MapAssociation
-from .config import FusionConfig, StateModel
+from .config import FusionConfig
 from .counters import Counters
-from .errors import InputError
+from .errors import EngineError
 from .gps_gate import GpsGate, GpsQueue, Verdict
 from .motion import MotionFusion
 from .initialisation import Initialiser, solve_initial_batch
 from .roadmap import RoadMap
 from .smoother import Smoother
 from .stream import OnFinal, Release
-from .track import Alignment, JumpGuard, Track
+from .reanchoring import Reanchoring
+from .relocalise import Search
+from .track import Alignment, JumpGuard, Track, planar_of
 
 log = logging.getLogger(__name__)
 
 __all__ = ["MapFusion", "EngineError"]
-
-
-class EngineError(InputError):
-    """A measurement the engine cannot take (wrong shape, time going backwards)."""
 
 
 def _as_pose3(pose) -> tuple[gtsam.Pose3, bool]:
@@ -68,7 +66,7 @@ def _finite_pose(p: gtsam.Pose3) -> bool:
     return bool(np.all(np.isfinite(p.matrix())))
 
 
-class MapFusion:
+class MapFusion(Reanchoring):
     """The engine: feed it odometry and GPS in time order, read estimates back.
 
     ``add_odometry(t, relative_pose)``: the motion since the previous frame, body frame (x
@@ -100,6 +98,8 @@ class MapFusion:
         self._since_update = 0
         self._last_cov_check_t = -math.inf
         self._pos_sigma = self._lat_sigma = 0.0  # the estimate's positional σ: largest, across the vehicle
+        self._search = Search(road, self.cfg)  # re-localisation on the road network (issue 17)
+        self.relocalised_at: list[tuple[float, float]] = []  # (time, distance searched) of each map re-localisation
 
     # ------------------------------------------------------------------ public API
     @property
@@ -171,6 +171,9 @@ class MapFusion:
         if not self.initialised:
             self.initialiser.scale_estimator.add_odometry(t, position)  # read only until initialised
             self._try_initialise()
+            if not (self.initialised or self.initialiser.fixes) and (loc := self._search.feed(*planar_of(
+                    self.track.raw[-1]))):
+                self._initialise_at(loc)
         else:
             self._add_frame(len(self.track) - 1)
         self._flush_gps()
@@ -241,18 +244,19 @@ class MapFusion:
     def _try_initialise(self) -> None:
         self._motion.restate(self.track, self.initialiser.scale_estimator)  # frames made before the wheel calibrated
         a = self.initialiser.try_align(self.track)
-        if a is None:
-            return
-        self.alignment = self._motion.rescale(a)
-        self.initialised_at = self.track.t[-1]
+        if a is not None:
+            self._begin(self._motion.rescale(a))
+
+    def _begin(self, a: Alignment, anchor: int = 0) -> None:
+        self.alignment, self.initialised_at = a, self.track.t[-1]
         self._smoother = Smoother(self.cfg, self.track, self.counters, self._between,
                                   lambda: self._to_map(self.track.raw[0]))
-        self._start_graph()
+        self._start_graph(anchor)
 
     def _to_map(self, raw: gtsam.Pose3) -> gtsam.Pose3:
         return self.track.to_map(raw, self._aligned)
 
-    def _start_graph(self) -> None:
+    def _start_graph(self, anchor: int = 0) -> None:
         """All buffered frames, solved as one batch; the smoother then starts from the last
         buffered frame, with the batch's marginal covariance as its prior. (So the estimates inside
         the initialisation window use its later fixes too.)"""
@@ -263,7 +267,7 @@ class MapFusion:
                          fit.scale_sigma)
                 self.alignment = self._motion.rescale(fit)
         batch = solve_initial_batch(self.cfg, self.track, self._aligned, self.initialiser.fixes,
-                                    lambda k: self._between(k, before_init=True), self.counters)
+                                    lambda k: self._between(k, before_init=True), self.counters, anchor)
         sm = self._sm
         last = len(self.track) - 1
         for k, pose in enumerate(batch.poses):
@@ -304,6 +308,8 @@ class MapFusion:
             self._update()
             if sm.last_updated_key == k:
                 track.online[k] = sm.last_updated_pose
+        if self.cfg.map_relocalisation:
+            self._search_when_lost(k, pred)
 
     def _map_prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3) -> bool:
         """Add the map prior on frame k if its predicted pose is off its road; True if added."""
@@ -356,14 +362,6 @@ class MapFusion:
             log.info("t=%.1f s: %d consistent GPS fixes disagree with the estimate: re-localising on GPS",
                      self.track.t[k], len(self._gate.run))
             self._relocalise(sigma)
-
-    def _relocalise(self, sigma: float) -> None:  # from GPS, as at the start: a fresh smoother at the gate's pose
-        r = self._gate.relocalisation(self.track, sigma)
-        noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, r.yaw_sigma_rad, sigma))
-        self._sm.restart_from(r.k, r.pose, noise, self._step)
-        self._pos_sigma = self._lat_sigma = sigma
-        self._association.reset()
-        self._update()
 
     def _update(self) -> None:
         if self._sm.update():

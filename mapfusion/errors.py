@@ -29,3 +29,7 @@ class ConfigError(InputError):
 class MapMismatchError(InputError):
     """Positions (GPS fixes, a recorded truth) do not lie on the map given with them: GPS of
     another place, latitude and longitude swapped, the map of another city, or another frame."""
+
+
+class EngineError(InputError):
+    """A measurement the engine cannot take (wrong shape, time going backwards, a call out of order)."""

@@ -278,15 +278,17 @@ class Batch:
 
 
 def solve_initial_batch(cfg: FusionConfig, track: Track, alignment: Alignment, fixes: list[Fix],
-                        between_for: Callable[[int], gtsam.NonlinearFactor], counters: Counters) -> Batch:
-    """The buffered frames as one graph, solved by Levenberg–Marquardt: a prior on the first,
-    odometry between them (``between_for``), the window's fixes gated against the initial guess."""
+                        between_for: Callable[[int], gtsam.NonlinearFactor], counters: Counters,
+                        anchor: int = 0) -> Batch:
+    """The buffered frames as one graph, solved by Levenberg–Marquardt: a prior on frame ``anchor`` (the
+    first; the last after a cold start, where the alignment is known at the end), odometry between them
+    (``between_for``), the window's fixes gated against the initial guess."""
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     guesses = [track.to_map(raw, alignment) for raw in track.raw]
     sig = factors.pose_sigmas(cfg.state, math.radians(cfg.init_prior_yaw_sigma_deg), cfg.init_prior_sigma_m,
                               tilt_rad=math.radians(cfg.init_prior_tilt_sigma_deg), z_m=cfg.init_prior_z_sigma_m)
-    graph.add(factors.pose_prior(0, guesses[0], factors.diagonal(sig)))
+    graph.add(factors.pose_prior(anchor, guesses[anchor], factors.diagonal(sig)))
     values.insert(X(0), guesses[0])
     for k in range(1, len(track)):
         graph.add(between_for(k))

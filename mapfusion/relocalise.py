@@ -136,27 +136,49 @@ class RoadParticles:
         i = np.clip(np.searchsorted(self._glob, g, side="right") - 1, road.edge_start[edge], road.edge_end[edge] - 1)
         return road.yaw_rad[i] + np.where(direction < 0, math.pi, 0.0)
 
-    def _drive(self, distance: np.ndarray) -> None:
-        """Each particle drives its own distance along the graph, taking a random legal exit at a vertex."""
+    def _drive(self, distance: np.ndarray, target: np.ndarray, sigma_m: float) -> None:
+        """Each particle drives its own distance along the graph. At a vertex it takes a legal exit drawn
+        in proportion to how near the exit leads it to ``target`` (its expected end position, (n, 2)):
+        the odometry's own turn picks the exit, so the particles at the right place follow the right
+        road; the importance weight (mean over the exits / the chosen exit's likelihood) keeps the
+        posterior that of a uniform choice. No U-turn, except at a dead end."""
         road, exits = self.road, self._exits
         along = self.along + self.direction * distance
         length = road.edge_length_m[self.edge]
-        for _ in range(MAX_HOPS):
+        for hop in range(MAX_HOPS):
             over = np.flatnonzero((along > length) | (along < 0.0))
             if over.size == 0:
                 break
             e, d = self.edge[over], self.direction[over]
             rest = np.where(d > 0, along[over] - length[over], -along[over])  # beyond the vertex
             key = 2 * e + (d < 0)
-            lo, hi = exits.start[key], exits.start[key + 1]
-            pick = lo + np.floor(self.rng.random(over.size) * (hi - lo)).astype(np.int64)
-            dead = hi == lo
-            pick = np.where(dead, 0, pick)
-            ne = np.where(dead, e, exits.edge[pick] if exits.edge.size else e)
-            nd = np.where(dead, -d, exits.direction[pick] if exits.edge.size else -d)
-            nl = road.edge_length_m[ne]
-            self.edge[over], self.direction[over], length[over] = ne, nd, nl
-            along[over] = np.where(nd > 0, rest, nl - rest)
+            lo, count = exits.start[key], exits.start[key + 1] - exits.start[key]
+            width = max(int(count.max()), 1)
+            j = np.arange(width)
+            valid = j[None, :] < count[:, None]
+            pick = np.where(valid, lo[:, None] + j[None, :], 0)
+            dead = count == 0
+            ce = np.where(valid, exits.edge[pick], e[:, None]) if exits.edge.size else np.repeat(e[:, None], width, 1)
+            cd = np.where(valid, exits.direction[pick], -d[:, None]) if exits.edge.size else \
+                np.repeat(-d[:, None], width, 1)
+            cl = road.edge_length_m[ce]
+            ca = np.clip(np.where(cd > 0, rest[:, None], cl - rest[:, None]), 0.0, cl)
+            end = self.positions(ce.ravel(), ca.ravel()).reshape(len(over), width, 2)
+            err2 = np.sum((end - target[over][:, None, :]) ** 2, axis=2)
+            logl = np.where(valid | dead[:, None], -0.5 * err2 / (sigma_m * sigma_m), -np.inf)
+            logl[dead, 1:] = -np.inf
+            top = np.max(logl, axis=1, keepdims=True)
+            lik = np.exp(logl - top)
+            total = lik.sum(axis=1)
+            choice = np.minimum((np.cumsum(lik, axis=1) < (self.rng.random(len(over)) * total)[:, None]).sum(axis=1),
+                                width - 1)
+            rows = np.arange(len(over))
+            if hop == 0:  # (later hops, on very short edges, are rare: their choice is left unweighted)
+                n_choices = np.maximum(count, 1)
+                self.logw[over] += np.log(total / n_choices) - np.log(lik[rows, choice])
+            ne, nd = ce[rows, choice], cd[rows, choice]
+            self.edge[over], self.direction[over], length[over] = ne, nd, road.edge_length_m[ne]
+            along[over] = np.where(nd > 0, rest, length[over] - rest)
         self.along = np.clip(along, 0.0, length)
 
     # ---------------------------------------------------------------- the filter
@@ -167,14 +189,16 @@ class RoadParticles:
             return
         cfg, rng, n = self.cfg, self.rng, len(self)
         before = self.positions()
-        noise = 1.0 + rng.normal(0.0, cfg.reloc_scale_sigma, n)
-        self._drive(np.maximum(moved_m * noise + rng.normal(0.0, cfg.reloc_along_sigma_m, n), 0.0))
-        after = self.positions()
         c, s = np.cos(self.offset), np.sin(self.offset)
         ox, oy = chord_odo_xy
-        ex = after[:, 0] - before[:, 0] - (c * ox - s * oy)
-        ey = after[:, 1] - before[:, 1] - (s * ox + c * oy)
+        expected = np.column_stack([c * ox - s * oy, s * ox + c * oy])  # the odometry's displacement, per offset
         sigma = cfg.reloc_sigma_m + cfg.reloc_sigma_per_m * moved_m
+        noise = 1.0 + rng.normal(0.0, cfg.reloc_scale_sigma, n)
+        self._drive(np.maximum(moved_m * noise + rng.normal(0.0, cfg.reloc_along_sigma_m, n), 0.0), before + expected,
+                    sigma)
+        after = self.positions()
+        ex = after[:, 0] - before[:, 0] - expected[:, 0]
+        ey = after[:, 1] - before[:, 1] - expected[:, 1]
         self.logw += -0.5 * (ex * ex + ey * ey) / (sigma * sigma)
         chord = math.hypot(ox, oy)
         if chord > 1.0:  # the offset follows the odometry's heading drift
@@ -219,9 +243,8 @@ class RoadParticles:
         wi = w[inside] / w[inside].sum()
         d2 = np.sum((xy[inside] - centre) ** 2, axis=1)
         k = int(np.flatnonzero(inside)[np.argmin(d2)])  # the particle nearest the centre gives the road
-        off = math.atan2(float(np.sum(wi * np.sin(self.offset[inside]))), float(np.sum(wi * np.cos(self.offset[inside]))))
-        resultant = math.hypot(float(np.sum(wi * np.sin(self.offset[inside]))),
-                               float(np.sum(wi * np.cos(self.offset[inside]))))
+        sin_m, cos_m = float(np.sum(wi * np.sin(self.offset[inside]))), float(np.sum(wi * np.cos(self.offset[inside])))
+        off, resultant = math.atan2(sin_m, cos_m), math.hypot(sin_m, cos_m)
         yaw_spread = math.sqrt(max(-2.0 * math.log(max(resultant, 1e-12)), 0.0))
         heading = math.remainder(odometry_yaw_rad + off, 2.0 * math.pi)
         return Located(float(xy[k, 0]), float(xy[k, 1]), heading, off, int(self.edge[k]), int(self.direction[k]),
@@ -252,7 +275,7 @@ def _exits(road: RoadMap) -> _Exits:
             leaving.setdefault(v, []).append((e, -1))
     rows: list[list[tuple[int, int]]] = []
     for e, (u, v) in enumerate(zip(road.edge_u.tolist(), road.edge_v.tolist())):
-        for d, vertex in ((1, v), (-1, u)):
+        for vertex in (v, u):  # the exit vertex along the drawing (key 2e), then against it (2e + 1)
             rows.append([x for x in leaving.get(vertex, []) if x[0] != e])
     counts = np.array([len(r) for r in rows], dtype=np.int64)
     flat = [x for r in rows for x in r]
@@ -296,3 +319,40 @@ class Relocaliser:
         self.particles.step(self._moved, chord)
         self._anchor, self._moved = (x, y), 0.0
         return self.particles.located(yaw)
+
+
+class Search:
+    """When and where the engine searches the road network (issue 17): a cold start in a region given
+    by the caller, or — with ``map_relocalisation`` — once the road association calls the estimate
+    lost, in a region around the current estimate grown with the distance driven since it was last
+    explained. It feeds the odometry's planar poses (in metres) to a :class:`Relocaliser`."""
+
+    def __init__(self, road: RoadMap, cfg: FusionConfig) -> None:
+        self.road, self.cfg = road, cfg
+        self.active: Relocaliser | None = None
+        self.started_m = 0.0  # odometry distance at the search's start
+        self.searches = 0
+
+    def begin(self, region: Region) -> None:
+        """Start a search in ``region`` (a new one replaces any running)."""
+        self.active = Relocaliser(self.road, self.cfg, region, self.cfg.reloc_seed + self.searches)
+        self.searches += 1
+
+    def lost_region(self, x_m: float, y_m: float, unexplained_m: float) -> Region:
+        """Where to look when lost: around the current estimate, the radius grown with the distance
+        driven since the estimate was last explained by a road."""
+        cfg = self.cfg
+        return Region(x_m, y_m, min(cfg.reloc_radius_m + cfg.reloc_radius_per_m * unexplained_m,
+                                    cfg.reloc_max_radius_m))
+
+    def feed(self, x_m: float, y_m: float, yaw_rad: float) -> Located | None:
+        """One odometry pose (metres, the odometry's frame); the answer once converged (the search then ends)."""
+        if self.active is None:
+            return None
+        loc = self.active.add(x_m, y_m, yaw_rad)
+        if loc is not None:
+            self.active = None
+            log.info("re-localised on the road network after %.0f m: (%.1f, %.1f), %.0f%% of the posterior "
+                     "within %.0f m (spread %.1f m)", loc.driven_m, loc.x_m, loc.y_m, 100 * loc.mass,
+                     self.cfg.reloc_converge_radius_m, loc.spread_m)
+        return loc

@@ -137,3 +137,50 @@ def wheel_gyro_samples(truth, scale_error: float = 0.0, bias_radps: float = 0.0,
     speed = np.maximum(v[iw] * (1.0 + scale_error) + rng.normal(0.0, speed_noise_mps, len(tw)) * (v[iw] > 0), 0.0)
     rate = w[ig] + bias_radps + rng.normal(0.0, gyro_noise_radps, len(tg))
     return (tw, speed), (tg, rate)
+
+
+def graph_route(road, seed: int, length_m: float, spacing_m: float = 1.0, start_edge: int | None = None):
+    """A legal drive over a road map's graph from a random edge (or ``start_edge``), taking a random exit
+    at each vertex, never turning back unless at a dead end: (x, y, yaw) arrays every ``spacing_m``
+    along the road's own way-points (its geometry, not the filter's), and the edges driven."""
+    rng = np.random.default_rng(seed)
+    travel = np.array([road.ways[int(w)].travel for w in road.edge_way_index])
+    edge = int(rng.integers(len(road.edge_u))) if start_edge is None else start_edge
+    direction = 1 if travel[edge] >= 0 else -1
+    pieces, edges, total = [], [], 0.0
+    while total < length_m + 50.0:
+        pts = road.xy_m[road.edge_start[edge]:road.edge_end[edge]]
+        pts = pts if direction > 0 else pts[::-1]
+        pieces.append(pts)
+        edges.append(edge)
+        total += float(road.edge_length_m[edge])
+        vertex = int(road.edge_v[edge] if direction > 0 else road.edge_u[edge])
+        nxt = [(e, 1) for e in np.flatnonzero(road.edge_u == vertex) if travel[e] >= 0 and e != edge] + \
+              [(e, -1) for e in np.flatnonzero(road.edge_v == vertex) if travel[e] <= 0 and e != edge]
+        if not nxt:
+            nxt = [(edge, -direction)]
+        edge, direction = nxt[int(rng.integers(len(nxt)))]
+        edge = int(edge)
+    xy = np.concatenate(pieces)
+    keep = np.concatenate(([True], np.hypot(*np.diff(xy, axis=0).T) > 1e-6))
+    xy = xy[keep]
+    s = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))))
+    u = np.arange(0.0, min(length_m, s[-1]), spacing_m)
+    x, y = np.interp(u, s, xy[:, 0]), np.interp(u, s, xy[:, 1])
+    yaw = np.arctan2(np.gradient(y), np.gradient(x))
+    return x, y, yaw, edges
+
+
+def drifting_odometry(x, y, yaw, seed: int, scale: float = 1.0, yaw_drift_rad_per_m: float = 0.0,
+                      heading_rad: float = 0.0, noise_m: float = 0.0, spacing_m: float = 1.0):
+    """The path (x, y) as an odometry would report it in its own frame, starting at the origin heading
+    ``heading_rad``: each step's length times ``scale``, its heading off by a drift growing
+    ``yaw_drift_rad_per_m`` per metre, plus white noise of ``noise_m`` per step. Returns (x, y, yaw)."""
+    rng = np.random.default_rng(seed)
+    dx, dy = np.diff(x), np.diff(y)
+    step = np.hypot(dx, dy) * scale + rng.normal(0.0, noise_m, len(dx))
+    head = np.arctan2(dy, dx) - yaw[0] + heading_rad + yaw_drift_rad_per_m * spacing_m * np.arange(len(dx))
+    ox = np.concatenate(([0.0], np.cumsum(step * np.cos(head))))
+    oy = np.concatenate(([0.0], np.cumsum(step * np.sin(head))))
+    oyaw = np.concatenate(([heading_rad], head))
+    return ox, oy, oyaw

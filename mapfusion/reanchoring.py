@@ -1,0 +1,116 @@
+"""The engine's re-anchoring paths (a part of :class:`~mapfusion.engine.MapFusion`, kept apart to keep
+it small): from GPS, when consistent fixes disagree with the estimate, and from the road network without
+GPS (issue 17) — a cold start in a region, or a search once the estimate is lost."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+
+import gtsam
+import numpy as np
+
+from . import factors
+from .association import MapAssociation
+from .config import FusionConfig, StateModel
+from .counters import Counters
+from .errors import EngineError
+from .gps_gate import GpsGate
+from .relocalise import Located, Region, Search
+from .roadmap import RoadMap
+from .smoother import Smoother
+from .track import Alignment, Track, planar_of
+
+log = logging.getLogger(__name__)
+
+
+class Reanchoring:
+    """Re-anchoring the smoother: mixed into MapFusion, whose state it reads."""
+
+    road: RoadMap
+    cfg: FusionConfig
+    track: Track
+    counters: Counters
+    alignment: Alignment | None
+    relocalised_at: list[tuple[float, float]]
+    _association: MapAssociation
+    _gate: GpsGate
+    _search: Search
+    _pos_sigma: float
+    _lat_sigma: float
+    _step: Callable[[int], gtsam.Pose3]
+    _update: Callable[[], None]
+    _begin: Callable[..., None]
+
+    @property
+    def initialised(self) -> bool:  # (MapFusion's)
+        raise NotImplementedError
+
+    @property
+    def _sm(self) -> Smoother:
+        raise NotImplementedError
+
+    @property
+    def _aligned(self) -> Alignment:
+        raise NotImplementedError
+
+    def start_in_region(self, lat: float, lon: float, radius_m: float) -> None:
+        """Cold start without GPS (issue 17): the vehicle starts somewhere on the roads within ``radius_m`` of
+        (lat, lon); the odometry's shape finds it, and the estimate begins once found. The odometry must be
+        metric (a stereo VO, a VIO): its scale is taken as 1."""
+        if self.initialised or self.track.t:
+            raise EngineError("start_in_region must be called before the first odometry frame")
+        if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(radius_m) and radius_m > 0):
+            raise EngineError(f"start region needs a finite latitude, longitude and radius > 0, got {lat}, {lon}, "
+                              f"{radius_m}")
+        x, y = self.road.projection.to_enu(lat, lon)
+        self._search.begin(Region(float(x), float(y), float(radius_m)))
+
+    def _initialise_at(self, loc: Located) -> None:
+        """A cold start's search has found the vehicle: the odometry's frame aligned so that its last pose
+        is the found one (scale 1), the frames so far solved as at a GPS initialisation."""
+        if self.cfg.state is StateModel.planar and self.track.level_rot is None:
+            self.track.level_frame()
+        raw = self.track.raw[-1]
+        rot = loc.yaw_rad - raw.rotation().yaw()
+        c, s, (px, py, _) = math.cos(rot), math.sin(rot), raw.translation()
+        self._begin(Alignment(1.0, self.cfg.reloc_scale_sigma, rot, np.array([loc.x_m - (c * px - s * py),
+                                                                               loc.y_m - (s * px + c * py)])),
+                    anchor=len(self.track) - 1)
+        self.counters.map_relocalisations += 1
+        self.relocalised_at.append((self.track.t[-1], loc.driven_m))
+
+    def _search_when_lost(self, k: int, pred: gtsam.Pose3) -> None:
+        """From the moment the estimate is lost, a search on the road network; once it converges away from
+        the estimate, the smoother is re-anchored there (issue 17; near the estimate it only confirms it)."""
+        assoc, search = self._association, self._search
+        if assoc.became_lost:
+            assoc.became_lost = False
+            search.begin(search.lost_region(pred.x(), pred.y(), assoc.unexplained_m))
+        if search.active is None:
+            return
+        x, y, yaw = planar_of(self.track.raw[k])
+        loc = search.feed(x * self._aligned.scale, y * self._aligned.scale, yaw)
+        if loc is None or math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
+            return
+        pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
+        sigmas = factors.pose_sigmas(StateModel.planar, max(loc.yaw_spread_rad, math.radians(2.0)),
+                                     max(loc.spread_m, 2.0))
+        self._sm.restart_from(k, pose, factors.diagonal(sigmas), self._step)
+        self._pos_sigma = self._lat_sigma = max(loc.spread_m, 2.0)
+        self._association.reset()
+        self.counters.map_relocalisations += 1
+        self.relocalised_at.append((self.track.t[k], loc.driven_m))
+        log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
+                 math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
+        self._update()
+
+    def _relocalise(self, sigma: float) -> None:  # from GPS, as at the start: a fresh smoother at the gate's pose
+        r = self._gate.relocalisation(self.track, sigma)
+        noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, r.yaw_sigma_rad, sigma))
+        self._sm.restart_from(r.k, r.pose, noise, self._step)
+        self._pos_sigma = self._lat_sigma = sigma
+        self._association.reset()
+        self._update()
+

@@ -1,0 +1,175 @@
+"""Global re-localisation on the road network (issue 17): particles stay on legal roads, the
+posterior is a distribution, and a drive's shape alone finds it in a 1 km region of a real city."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapfusion import FusionConfig, RoadMap
+from mapfusion.relocalise import Region, Relocaliser, RoadParticles
+from mapfusion.roadmap import can_drive
+from tests.helpers import MAPS, drifting_odometry, graph_route
+
+CFG = FusionConfig()
+
+
+@pytest.fixture(scope="module")
+def road():
+    return RoadMap.from_osm(MAPS / "helsinki.osm.pbf")
+
+
+def test_every_exit_is_legal_and_leaves_the_vertex_the_edge_leads_to(road):
+    p = RoadParticles(road, CFG)
+    ex = p._exits
+    for e in range(0, len(road.edge_u), 7):
+        for d in (1, -1):
+            key = 2 * e + (d < 0)
+            vertex = int(road.edge_v[e] if d > 0 else road.edge_u[e])
+            for j in range(ex.start[key], ex.start[key + 1]):
+                ne, nd = int(ex.edge[j]), int(ex.direction[j])
+                assert ne != e
+                assert int(road.edge_u[ne] if nd > 0 else road.edge_v[ne]) == vertex  # it starts where e ends
+                far = int(road.edge_v[ne] if nd > 0 else road.edge_u[ne])
+                assert can_drive(road, ne, far)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), steps=st.integers(1, 30), step_m=st.floats(0.5, 40.0),
+       turn=st.floats(-math.pi, math.pi))
+def test_particles_stay_on_their_roads_and_the_posterior_sums_to_one(road, seed, steps, step_m, turn):
+    p = RoadParticles(road, CFG, seed)
+    rng = np.random.default_rng(seed)
+    x0, y0 = road.xy_m[int(rng.integers(len(road)))]
+    assert p.start(Region(float(x0), float(y0), 300.0), 0.0, n=500) > 0
+    for k in range(steps):
+        p.step(step_m, np.array([step_m * math.cos(turn * k / steps), step_m * math.sin(turn * k / steps)]))
+        assert math.isclose(float(np.exp(p.logw).sum()), 1.0, rel_tol=1e-9)
+        assert np.all(p.along >= 0.0) and np.all(p.along <= road.edge_length_m[p.edge] + 1e-9)
+        xy = p.positions()
+        for i in range(0, len(p), 50):  # each lies on its own edge's polyline (way-points ~1 m apart)
+            pts = road.xy_m[road.edge_start[p.edge[i]]:road.edge_end[p.edge[i]]]
+            assert np.min(np.hypot(*(pts - xy[i]).T)) <= road.config.spacing_m + 1e-6
+
+
+def _relocalise(road, seed, length_m, offset_m=300.0, radius_m=1000.0):
+    x, y, yaw, _ = graph_route(road, seed, length_m)
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, scale=1.02, yaw_drift_rad_per_m=math.radians(1.0) / 100,
+                                     heading_rad=1.0, noise_m=0.02)
+    a = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi)
+    r = Relocaliser(road, CFG, Region(x[0] + offset_m * math.cos(a), y[0] + offset_m * math.sin(a), radius_m), seed)
+    for k in range(len(x)):
+        loc = r.add(ox[k], oy[k], oyaw[k])
+        if loc is not None:
+            return k, math.hypot(loc.x_m - x[k], loc.y_m - y[k]), math.remainder(loc.yaw_rad - yaw[k], 2 * math.pi)
+    return None
+
+
+def test_a_drives_shape_finds_it_in_a_1_km_region(road):
+    """Legal drives over Helsinki's graph with a 2% scale error and 1°/100 m heading drift, each from a region
+    of 1 km radius whose centre lies 300 m from the start: every one found within 1 km of driving, within 10 m
+    and 10° (no wrong convergence), and at least 7 of 8 within 500 m (issue 17: ≥ 90% within 500 m)."""
+    found = {}
+    for seed in range(8):
+        got = _relocalise(road, seed, 1000.0)
+        assert got is not None, f"seed {seed}: not converged within 1 km"
+        driven_m, err_m, yaw_err = got
+        assert err_m < 10.0 and abs(math.degrees(yaw_err)) < 10.0, (seed, got)
+        found[seed] = driven_m
+    assert sum(d <= 500 for d in found.values()) >= 7, found
+
+
+def test_a_region_without_roads_finds_nothing(road):
+    r = Relocaliser(road, CFG, Region(1e6, 1e6, 500.0))
+    assert all(r.add(float(k), 0.0, 0.0) is None for k in range(300))
+    assert r.way_points_in_region == 0 and len(r.particles) == 0
+
+
+def test_the_same_seed_gives_the_same_answer(road):
+    assert _relocalise(road, 3, 500.0) == _relocalise(road, 3, 500.0)
+
+
+def _rel(ox, oy, oyaw, k):
+    """The odometry's relative motion into step k as a 4×4 body-frame pose."""
+    if k == 0:
+        return np.eye(4)
+    c0, s0 = math.cos(oyaw[k - 1]), math.sin(oyaw[k - 1])
+    dx, dy, dyaw = ox[k] - ox[k - 1], oy[k] - oy[k - 1], oyaw[k] - oyaw[k - 1]
+    rel = np.eye(4)
+    rel[:2, :2] = [[math.cos(dyaw), -math.sin(dyaw)], [math.sin(dyaw), math.cos(dyaw)]]
+    rel[0, 3], rel[1, 3] = c0 * dx + s0 * dy, -s0 * dx + c0 * dy
+    return rel
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_cold_start_without_gps_begins_where_the_vehicle_is(road, seed):
+    """MapFusion.start_in_region with no GPS: no estimate until the search converges, then one within 5 m of
+    the truth, and the drive tracked on to its end within 25 m (10 m/s, 10 Hz, 1°/100 m heading drift)."""
+    from mapfusion import MapFusion
+
+    x, y, yaw, _ = graph_route(road, seed, 1200.0)
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, yaw_drift_rad_per_m=math.radians(1.0) / 100, heading_rad=2.0,
+                                     noise_m=0.02)
+    eng = MapFusion(road, FusionConfig(), odometry_rate_hz=10.0)
+    a = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi)
+    lat, lon = road.projection.to_geo(x[0] + 300.0 * math.cos(a), y[0] + 300.0 * math.sin(a))
+    eng.start_in_region(float(lat), float(lon), 1000.0)
+    first = None
+    for k in range(len(x)):
+        eng.add_odometry(0.1 * k, _rel(ox, oy, oyaw, k))
+        p = eng.estimate()
+        if p is not None and first is None:
+            first = (k, math.hypot(p.x() - x[k], p.y() - y[k]))
+    eng.finish()
+    assert first is not None and eng.counters.map_relocalisations == 1
+    assert first[1] < 5.0, first
+    assert eng.initialised_at == pytest.approx(0.1 * first[0])
+    p = eng.estimate()
+    assert math.hypot(p.x() - x[-1], p.y() - y[-1]) < 25.0
+
+
+def test_a_start_region_is_refused_after_the_first_frame_or_when_not_finite(road):
+    from mapfusion import MapFusion
+    from mapfusion.errors import EngineError
+
+    eng = MapFusion(road, FusionConfig())
+    with pytest.raises(EngineError):
+        eng.start_in_region(60.17, 24.94, float("nan"))
+    with pytest.raises(EngineError):
+        eng.start_in_region(60.17, 24.94, 0.0)
+    eng.add_odometry(0.0, np.eye(4))
+    with pytest.raises(EngineError):
+        eng.start_in_region(60.17, 24.94, 500.0)
+
+
+def test_a_lost_estimate_is_found_again_on_the_road_network(road):
+    """GPS at the start puts the estimate 150 m off (a biased fix window, then no GPS): with
+    map_relocalisation the engine calls it lost, searches the roads and re-anchors on the truth; without it
+    the estimate stays off."""
+    from mapfusion import MapFusion
+
+    seed = 2
+    x, y, yaw, _ = graph_route(road, seed, 2000.0)
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.5, noise_m=0.02)
+    n_gps = 400  # 40 s of fixes, all 150 m north-east of the truth
+
+    def run(relocalise: bool):
+        eng = MapFusion(road, FusionConfig(map_relocalisation=relocalise), odometry_rate_hz=10.0)
+        for k in range(len(x)):
+            eng.add_odometry(0.1 * k, _rel(ox, oy, oyaw, k))
+            if k % 10 == 0 and k < n_gps:
+                lat, lon = road.projection.to_geo(x[k] + 106.0, y[k] + 106.0)
+                eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
+        eng.finish()
+        p = eng.estimate()
+        return eng, math.hypot(p.x() - x[-1], p.y() - y[-1])
+
+    off, err_off = run(False)
+    on, err_on = run(True)
+    assert err_off > 50.0  # the bias stays without the search
+    assert on.counters.lost_events >= 1 and on.counters.map_relocalisations >= 1
+    assert err_on < 15.0, (err_on, on.relocalised_at)
