@@ -67,6 +67,11 @@ class Reanchoring:
         x, y = self.road.projection.to_enu(lat, lon)
         self._search.begin(Region(float(x), float(y), float(radius_m)))
 
+    @property
+    def searching_from_region(self) -> bool:
+        """A cold start's search is running (no estimate yet)."""
+        return not self.initialised and self._search.active is not None
+
     def _initialise_at(self, loc: Located) -> None:
         """A cold start's search has found the vehicle: the odometry's frame aligned so that its last pose
         is the found one (scale 1), the frames so far solved as at a GPS initialisation."""

@@ -148,30 +148,38 @@ class FusionResult:
 
 
 def fuse(road: RoadMap, t_odo: np.ndarray, poses: np.ndarray, gps: GpsFixes | None, cfg: FusionConfig,
-         progress=None, on_frame=None, motion: MotionSamples | None = None) -> FusionResult:
+         progress=None, on_frame=None, motion: MotionSamples | None = None,
+         start_region: tuple[float, float, float] | None = None) -> FusionResult:
     """Feed odometry (absolute poses in its own frame), GPS and (optionally) wheel speed and yaw rate to
-    the engine in time order; ``on_frame(engine)`` after every frame."""
+    the engine in time order; ``on_frame(engine)`` after every frame. ``start_region`` (lat, lon, radius_m):
+    a cold start without GPS (:meth:`MapFusion.start_in_region`)."""
     n = len(t_odo)
     if n < 2:
         raise FormatError("odometry: need at least two frames")
-    eng = make_engine(road, t_odo, gps, cfg)
+    eng = make_engine(road, t_odo, gps, cfg, start_region=start_region)
     feed(eng, [(np.asarray(t_odo), np.asarray(poses))], gps, n, progress, on_frame, motion)
     t_s, online = eng.online_estimates()
     return FusionResult(t_s, online, eng.trajectory(), eng)
 
 
-def make_engine(road: RoadMap, t_odo: np.ndarray, gps: GpsFixes | None, cfg: FusionConfig, on_final=None) -> MapFusion:
-    """The engine for a recorded drive: its odometry and GPS rates from the median periods."""
+def make_engine(road: RoadMap, t_odo: np.ndarray, gps: GpsFixes | None, cfg: FusionConfig, on_final=None,
+                start_region: tuple[float, float, float] | None = None) -> MapFusion:
+    """The engine for a recorded drive: its odometry and GPS rates from the median periods (and the cold
+    start's region, (lat, lon, radius_m), when given)."""
     gps_rate = 1.0
     if gps is not None and len(gps) >= 2:
         gps_rate = 1.0 / float(np.median(np.diff(gps.t_s)))
     period = float(np.median(np.diff(t_odo)))
-    return MapFusion(road, cfg, gps_rate_hz=gps_rate, odometry_rate_hz=1.0 / period, on_final=on_final)
+    eng = MapFusion(road, cfg, gps_rate_hz=gps_rate, odometry_rate_hz=1.0 / period, on_final=on_final)
+    if start_region is not None:
+        eng.start_in_region(*start_region)
+    return eng
 
 
 def fuse_streaming(road: RoadMap, path: str | Path, fmt: OdometryFormat, times: str | Path | None,
                    frame: OdometryFrame, gps: GpsFixes | None, cfg: FusionConfig, on_final, progress=None,
-                   t_all: np.ndarray | None = None, motion: MotionSamples | None = None) -> MapFusion:
+                   t_all: np.ndarray | None = None, motion: MotionSamples | None = None,
+                   start_region: tuple[float, float, float] | None = None) -> MapFusion:
     """The engine over an odometry file of any length, in flat memory: the file is read through
     once to check it (and for its rate; ``t_all``: that pass's times, when the caller made it),
     then fed a chunk at a time; each frame goes to ``on_final(t, online, smoothed)`` once final
@@ -180,7 +188,7 @@ def fuse_streaming(road: RoadMap, path: str | Path, fmt: OdometryFormat, times: 
         t_all = odometry_times(path, fmt, times)
     if len(t_all) < 2:
         raise FormatError("odometry: need at least two frames")
-    eng = make_engine(road, t_all, gps, cfg, on_final)
+    eng = make_engine(road, t_all, gps, cfg, on_final, start_region)
     n = len(t_all)
     del t_all
     feed(eng, read_odometry_chunks(path, fmt, times, frame), gps, n, progress, motion=motion)

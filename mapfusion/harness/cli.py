@@ -454,6 +454,11 @@ def fuse(
     gps_until_s: Annotated[Optional[float], typer.Option("--gps-until-s", help="Use GPS fixes only this many seconds "
                                                          "from the first odometry frame (the paper's KITTI protocol: "
                                                          "GPS for initialisation only).", min=0.0)] = None,
+    start_region: Annotated[Optional[str], typer.Option("--start-region", help="LAT,LON,RADIUS_M: a cold start "
+                                                        "without GPS — the vehicle starts on a road within RADIUS_M "
+                                                        "metres of LAT,LON and the odometry's shape finds it on the "
+                                                        "map (issue 17); the odometry must be metric. The estimate "
+                                                        "begins once found.")] = None,
 ) -> None:
     """Run the engine on recorded odometry and GPS with an OSM map; write the online (causal) estimate."""
     from mapfusion.replay import OdometryFormat, OdometryFrame, load_fusion_config
@@ -492,7 +497,8 @@ def fuse(
         cfg = load_fusion_config(config, **({"use_map": False} if no_map else {}))
         if wheel is not None and imu is None:
             _fail("--wheel needs --imu (its gyro gives the yaw rate)")
-        inputs = RecordedInputs(map_path, odometry, fmt, frame, times, gps, gps_until_s, imu, wheel)
+        region = parse_start_region(start_region) if start_region is not None else None
+        inputs = RecordedInputs(map_path, odometry, fmt, frame, times, gps, gps_until_s, imu, wheel, region)
         with _FrameBar() as bar:
             if out_bag is None:  # streamed, in flat memory
                 eng, n = fuse_recorded_to_files(inputs, cfg, out, smoothed, f" ({'no map' if no_map else 'with map'})",
@@ -505,7 +511,23 @@ def fuse(
     _fuse_summary(eng, n, out)
 
 
+def parse_start_region(text: str) -> tuple[float, float, float]:
+    """``LAT,LON,RADIUS_M`` → (lat, lon, radius_m), or an InputError naming --start-region."""
+    parts = text.split(",")
+    try:
+        lat, lon, radius = (float(p) for p in parts)
+    except ValueError:
+        raise InputError(f"--start-region {text!r}: expected LAT,LON,RADIUS_M (three numbers)") from None
+    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and 0.0 < radius <= 100_000.0):
+        raise InputError(f"--start-region {text!r}: latitude in [-90, 90], longitude in [-180, 180], "
+                         "radius in (0, 100000] m")
+    return lat, lon, radius
+
+
 def _require_initialised(eng) -> None:
+    if not eng.initialised and eng.searching_from_region:
+        _fail(f"the vehicle was not found in the start region: the road-network search did not converge over "
+              f"the drive ({eng.counters.frames} frames); a longer drive with turns, or a smaller region")
     if not eng.initialised:
         _fail("the engine never initialised: it needs GPS fixes while the vehicle moves "
               f"(got {eng.counters.gps_before_init} fixes, {eng.scale_samples} scale samples)")

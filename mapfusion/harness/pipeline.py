@@ -216,6 +216,7 @@ class RecordedInputs:
     gps_until_s: float | None = None  # fixes only this long from the first odometry frame
     imu: Path | None = None  # its gyro's z axis is the yaw rate fused with --wheel; without a wheel only checked
     wheel: Path | None = None  # wheel speed (t,speed_mps), fused with the IMU's yaw rate (issue 18)
+    start_region: tuple[float, float, float] | None = None  # (lat, lon, radius_m): a cold start (issue 17)
 
 
 def fuse_recorded(inputs: RecordedInputs, cfg: FusionConfig, progress=None, on_frame=None) -> FusionResult:
@@ -223,7 +224,8 @@ def fuse_recorded(inputs: RecordedInputs, cfg: FusionConfig, progress=None, on_f
     after every frame."""
     t_odo, poses = read_odometry(inputs.odometry, inputs.odometry_format, inputs.times, inputs.odometry_frame)
     road, fixes, motion = _recorded_map_and_gps(inputs, t_odo[[0, -1]])
-    return fuse(road, t_odo, poses, fixes, cfg, progress=progress, on_frame=on_frame, motion=motion)
+    return fuse(road, t_odo, poses, fixes, cfg, progress=progress, on_frame=on_frame, motion=motion,
+                start_region=inputs.start_region)
 
 
 def _recorded_map_and_gps(inputs: RecordedInputs, span_s: np.ndarray):
@@ -247,6 +249,10 @@ def _recorded_map_and_gps(inputs: RecordedInputs, span_s: np.ndarray):
     elif inputs.imu is not None:
         check_imu_csv(inputs.imu)
     road, fixes = _map_and_fixes(inputs.map, fixes, float(span_s[0]), inputs.gps_until_s, f"{inputs.gps}: the GPS fixes")
+    if inputs.start_region is not None:
+        lat, lon, _ = inputs.start_region
+        road.check_covers(np.column_stack(road.projection.to_enu(np.array([lat]), np.array([lon]))),
+                          f"--start-region {lat},{lon} on the map {inputs.map}")
     return road, fixes, motion
 
 
@@ -311,7 +317,7 @@ def fuse_recorded_to_files(inputs: RecordedInputs, cfg: FusionConfig, out: Path,
 
     try:
         eng = fuse_streaming(road, inputs.odometry, inputs.odometry_format, inputs.times, inputs.odometry_frame,
-                             fixes, cfg, on_final, progress, t_all, motion)
+                             fixes, cfg, on_final, progress, t_all, motion, inputs.start_region)
         for w in writers:
             w.flush()
     except BaseException:
