@@ -120,6 +120,28 @@ def online_error(truth_xy: np.ndarray, truth_yaw_rad: np.ndarray, estimate_xy: n
     return OnlineError(rms(e), float(e.max()), rms(lat), rms(lon), len(e))
 
 
+def relocalisation_m(driven_m: np.ndarray, error_m: np.ndarray, from_m: float, within_m: float = 10.0,
+                     hold_m: float = 100.0) -> float | None:
+    """Distance driven from ``from_m`` (a kidnap) until the online error stays under ``within_m`` for the next
+    ``hold_m`` of driving (issue 17's ``relocalisation_m``), or None when it never does. ``driven_m``
+    (non-decreasing) and ``error_m`` are per frame; a stretch that reaches the drive's end counts only when it
+    is ``hold_m`` long."""
+    d, e = np.asarray(driven_m, float), np.asarray(error_m, float)
+    if d.shape != e.shape:
+        raise InputError(f"relocalisation_m: {d.shape} distances but {e.shape} errors")
+    sel = d >= from_m
+    d, e = d[sel], e[sel]
+    bad = ~(e < within_m)
+    idx = np.append(np.flatnonzero(bad), len(d))  # the bad frames, then the end
+    nxt = idx[np.searchsorted(idx, np.arange(len(d)))]  # each frame's next bad frame (or len(d))
+    for i in np.flatnonzero(~bad):
+        j = nxt[i]
+        end_m = d[j] if j < len(d) else d[-1]
+        if end_m - d[i] >= hold_m:
+            return float(d[i] - from_m)
+    return None
+
+
 def zone_rmse(truth_xy: np.ndarray, estimate_xy: np.ndarray, mask: np.ndarray) -> float | None:
     """Online RMSE over the frames in ``mask`` (e.g. GPS-denied zones); None when there are none."""
     mask = np.asarray(mask, dtype=bool)

@@ -203,6 +203,38 @@ class OdometryConfig:
                       "directory); may name ${MAPFUSION_DATA}.")
 
 
+class KidnapKind(str, enum.Enum):
+    """How a ``kidnapped`` drive knocks the estimate off (issue 17)."""
+
+    none = "none"
+    gps_bias = "gps_bias"  # every fix carries one bias: the engine initialises in the wrong place
+    vo_jump = "vo_jump"  # the VO loses track for gap_s and re-initialises with a pose jump and a heading error
+
+
+@dataclass(frozen=True)
+class KidnapConfig:
+    """``[kidnap]``: the estimate knocked off after initialisation (issue 17). The magnitudes are drawn from
+    the scenario's seed (a fifth sensor stream: the others are unchanged) within the ranges below; the drawn
+    values are written to ``sensor_events.json``."""
+
+    kind: KidnapKind = param(KidnapKind.none, "none | gps_bias | vo_jump.")
+    bias_min_m: float = param(50.0, "gps_bias: smallest bias of the fixes.", unit="m", min=0.0, max=100000.0,
+                              source="issue 17")
+    bias_max_m: float = param(200.0, "gps_bias: largest bias.", unit="m", min=0.0, max=100000.0, source="issue 17")
+    jump_min_m: float = param(30.0, "vo_jump: smallest pose jump at the re-initialisation.", unit="m", min=0.0,
+                              max=100000.0, source="issue 17")
+    jump_max_m: float = param(300.0, "vo_jump: largest pose jump.", unit="m", min=0.0, max=100000.0,
+                              source="issue 17")
+    heading_max_deg: float = param(30.0, "vo_jump: largest heading error at the re-initialisation (either sign).",
+                                   unit="deg", min=0.0, max=180.0, source="issue 17")
+    at_min_s: float = param(150.0, "vo_jump: earliest time of the outage from the start (after the default 120 s "
+                            "GPS window).", unit="s", min=0.0, max=86400.0)
+    at_max_s: float = param(300.0, "vo_jump: latest time of the outage from the start.", unit="s", min=0.0,
+                            max=86400.0)
+    gap_s: float = param(8.0, "vo_jump: the VO's outage before it re-initialises (no frames): long enough that "
+                         "the jump is not an impossible speed.", unit="s", min=0.0, max=3600.0)
+
+
 @dataclass(frozen=True)
 class WheelConfig:
     """``[wheel]``: the wheel-speed sensor of odometry kinds vo+wheel and vio+wheel; ``overrides`` (any
@@ -235,6 +267,7 @@ class Scenario:
     imu: ImuParams = param(ImuParams(), "[imu]")
     wheel: WheelConfig = param(WheelConfig(), "[wheel] (odometry kinds with +wheel only)")
     tunnels: tuple[TunnelZone, ...] = param((), "[[tunnels]]")
+    kidnap: KidnapConfig = param(KidnapConfig(), "[kidnap] (issue 17)")
     mapfusion: FusionConfig = param(FusionConfig(), "[mapfusion]")
 
     def to_toml_dict(self) -> dict:
@@ -246,6 +279,8 @@ class Scenario:
         wheel = d.pop("wheel")
         if self.odometry.kind.wheel:  # written only where the scenario has a wheel sensor
             d["wheel"] = {"vehicle": wheel["vehicle"], **{k: v for k, v in wheel.get("overrides", [])}}
+        if self.kidnap.kind is KidnapKind.none:  # (a drive without a kidnap writes no table: unchanged files)
+            del d["kidnap"]
         d["tunnels"] = [to_mapping(z) for z in self.tunnels]
         if not d["tunnels"]:
             del d["tunnels"]
@@ -266,7 +301,7 @@ class Scenario:
 
 
 _SECTIONS = {"traffic": TrafficConfig, "route": RouteConfig, "weather": WeatherConfig, "gps": GpsConfig,
-             "imu": ImuParams, "mapfusion": FusionConfig}
+             "imu": ImuParams, "kidnap": KidnapConfig, "mapfusion": FusionConfig}
 
 
 #: A run's name becomes its directory under --out: one safe path component, never "..", "/x" or "".
@@ -328,6 +363,9 @@ def _scenario_from_dict(data: dict, where: str, base_dir: Path | None, resolve: 
     if not _RUN_NAME.fullmatch(sc.name):
         raise ScenarioError(f"{where}: name {sc.name!r} must be one path component of at most 128 letters, digits, "
                             "'_', '.', '+' or '-', not starting with '.', '+' or '-' (it names the run's directory)")
+    k = sc.kidnap
+    if k.bias_max_m < k.bias_min_m or k.jump_max_m < k.jump_min_m or k.at_max_s < k.at_min_s:
+        raise ScenarioError(f"{where}: kidnap: a *_max below its *_min")
     if sc.gps.source is GpsSource.recorded and not sc.truth:
         raise ScenarioError(f"{where}: gps.source = \"recorded\" needs a recorded drive (truth = ...)")
     recorded_odometry = sc.odometry.kind is OdometryKind.recorded

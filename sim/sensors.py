@@ -534,13 +534,65 @@ class SensorData:
     gps: GpsOutput
     params: OdometryParams
     wheel: WheelOutput | None = None  # odometry kinds with +wheel only
+    kidnap: Kidnap | None = None  # a kidnapped drive's kidnap (issue 17)
+
+
+@dataclass(frozen=True)
+class Kidnap:
+    """What knocked the estimate off, as drawn: when (the truth's time and distance driven) and how much."""
+
+    kind: str
+    t_s: float
+    at_m: float
+    distance_m: float
+    bearing_rad: float
+    heading_rad: float = 0.0
+
+
+def apply_kidnap(cfg, truth: Truth, odo: OdometryOutput, gps: GpsOutput, rng: np.random.Generator
+                 ) -> tuple[OdometryOutput, GpsOutput, Kidnap | None]:
+    """The ``[kidnap]`` of a scenario applied to its sensors: ``gps_bias`` moves every fix by one drawn
+    vector (the kidnap is at the start); ``vo_jump`` removes the VO's frames for ``gap_s`` from a drawn
+    time and turns and shifts every later pose (in the odometry's own frame) by a drawn
+    heading error and jump, as a VO that re-initialises in the wrong place does."""
+    kind = getattr(cfg.kind, "value", cfg.kind)
+    if kind == "none":
+        return odo, gps, None
+    bearing = float(rng.uniform(-math.pi, math.pi))
+    if kind == "gps_bias":
+        d = float(rng.uniform(cfg.bias_min_m, cfg.bias_max_m))
+        moved = dataclasses.replace(gps, x_m=gps.x_m + d * math.cos(bearing), y_m=gps.y_m + d * math.sin(bearing))
+        return odo, moved, Kidnap(kind, float(truth.t_s[0]), 0.0, d, bearing)
+    d = float(rng.uniform(cfg.jump_min_m, cfg.jump_max_m))
+    heading = math.radians(float(rng.uniform(-cfg.heading_max_deg, cfg.heading_max_deg)))
+    t_k = float(truth.t_s[0]) + float(rng.uniform(cfg.at_min_s, cfg.at_max_s))
+    driven = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(truth.x_m), np.diff(truth.y_m)))))
+    t_out = truth.t_s[odo.frame_index]
+    gone = (t_out > t_k) & (t_out <= t_k + cfg.gap_s)
+    after = t_out > t_k + cfg.gap_s
+    if not after.any():
+        return odo, gps, None  # the drive ends before the VO comes back: no kidnap to recover from
+    poses = odo.poses.copy()
+    first = int(np.flatnonzero(after)[0])
+    c = poses[first, :3, 3].copy()
+    jump = np.eye(4)
+    ch, sh = math.cos(heading), math.sin(heading)
+    jump[:2, :2] = [[ch, -sh], [sh, ch]]
+    jump[:2, 3] = c[:2] - jump[:2, :2] @ c[:2] + d * np.array([math.cos(bearing), math.sin(bearing)])
+    poses[after] = jump @ poses[after]
+    keep = ~gone
+    dropped = odo.dropped.copy()
+    dropped[odo.frame_index[gone]] = True
+    out = dataclasses.replace(odo, t_s=odo.t_s[keep], poses=poses[keep], frame_index=odo.frame_index[keep],
+                              dropped=dropped, events=sorted(odo.events + [(float(t_out[first]), "kidnap")]))
+    return out, gps, Kidnap(kind, float(t_out[first]), float(driven[odo.frame_index[first]]), d, bearing, heading)
 
 
 def sensor_streams(seed: int) -> dict[str, np.random.Generator]:
     """Independent generators per sensor from the scenario seed (changing one never moves another)."""
     # a fourth child leaves the first three as they were: spawn keys are (0,), (1,), (2,), (3,)
-    children = np.random.SeedSequence([seed, 0x5E45]).spawn(4)
-    return {name: np.random.default_rng(c) for name, c in zip(("odometry", "imu", "gps", "wheel"), children)}
+    children = np.random.SeedSequence([seed, 0x5E45]).spawn(5)
+    return {name: np.random.default_rng(c) for name, c in zip(("odometry", "imu", "gps", "wheel", "kidnap"), children)}
 
 
 def recorded_odometry(truth: Truth, path: str) -> OdometryOutput:
@@ -574,4 +626,5 @@ def synthesise(sc: Scenario, truth: Truth, gps: GpsOutput | None = None) -> Sens
     if sc.odometry.kind.wheel:
         wheel = simulate_wheel(truth, wheel_preset(sc.wheel.vehicle).with_overrides(sc.wheel.overrides), rng["wheel"],
                                sc.weather.kind)
-    return SensorData(odo, imu, gps, params, wheel)
+    odo, gps, kidnap = apply_kidnap(sc.kidnap, truth, odo, gps, rng["kidnap"])
+    return SensorData(odo, imu, gps, params, wheel, kidnap)

@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from mapfusion.formats import GpsFixes, write_tum
-from mapfusion.metrics import associate, ate, delocalized, match_rate, online_error, rpe_per_100m, zone_rmse
+from mapfusion.metrics import (associate, ate, delocalized, match_rate, online_error, relocalisation_m, rpe_per_100m,
+                               zone_rmse)
 from mapfusion.config import FusionConfig
 from mapfusion.roadmap import RoadMap
 from mapfusion.replay import (FusionResult, MotionSamples, OdometryFormat, OdometryFrame, fuse, poses_to_arrays,
@@ -46,6 +47,21 @@ def _online_arrays(res: FusionResult):
     xyz = np.array([[res.online[i].x(), res.online[i].y(), res.online[i].z()] for i in ok]).reshape(-1, 3)
     yaw = np.array([res.online[i].rotation().yaw() for i in ok])
     return res.t_s[ok], xyz, yaw, ok
+
+
+def _kidnap_metrics(res: FusionResult, truth: Truth, kidnap) -> dict:
+    """``relocalised`` and ``relocalisation_m`` of a kidnapped drive (issue 17; null without a kidnap): the
+    distance driven from the kidnap until Map-Fusion's online error stays under 10 m for the next 100 m."""
+    if kidnap is None:
+        return {"relocalised": None, "relocalisation_m": None}
+    t, xyz, _, _ = _online_arrays(res)
+    ia, ib = associate(t, truth.t_s)
+    driven = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(truth.x_m), np.diff(truth.y_m)))))
+    err = np.hypot(xyz[ia, 0] - truth.x_m[ib], xyz[ia, 1] - truth.y_m[ib])
+    k = int(np.searchsorted(truth.t_s, kidnap.t_s - 1e-9))
+    r = relocalisation_m(driven[ib], err, float(driven[min(k, len(driven) - 1)]))
+    return {"relocalised": r is not None, "relocalisation_m": r, "kidnap": kidnap.kind,
+            "kidnap_distance_m": kidnap.distance_m, "kidnap_heading_deg": math.degrees(kidnap.heading_rad)}
 
 
 def _evaluate(res: FusionResult, truth: Truth, estimator: Estimator, deloc_m: float) -> dict:
@@ -152,7 +168,9 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
                         "recoveries": c.recoveries, "odometry_jumps": c.odometry_jumps,
                         "gps_relocalisations": c.gps_relocalisations,
                         "lost_events": c.lost_events, "lost_s": mf.engine.lost_s,
+                        "map_relocalisations": c.map_relocalisations,
                         "scale": mf.engine.scale, "initialised_at_s": mf.engine.initialised_at})
+        metrics.update(_kidnap_metrics(mf, truth, sensors.kidnap))
         if motion is not None:  # wheel + gyro runs only: the vo and vio rows keep their keys
             metrics.update({"odometry_vetoed": c.odometry_vetoed, "wheel_frames": c.wheel_frames,
                             "wheel_scale": mf.engine.wheel_scale, "wheel_scale_true": 1.0 / (1.0 + sensors.wheel.scale_error),

@@ -81,6 +81,8 @@ def write_sensors(run_dir: str | Path, sensors: SensorData, projection) -> Path:
         "gps_outliers": int(g.outlier.sum()),
         "odometry_params": {k: v for k, v in sensors.params.__dict__.items()},
     }
+    if sensors.kidnap is not None:  # issue 17: what was drawn
+        events["kidnap"] = dict(sensors.kidnap.__dict__)
     (d / "sensor_events.json").write_text(json.dumps(events, indent=2) + "\n")
     return d
 
