@@ -590,6 +590,13 @@ class FusionConfig:
     reloc_confirm_m: float = param(15.0, "A re-localisation within this distance of the current estimate only "
                                    "confirms it (no re-anchoring).", unit="m", min=0.0, max=10000.0,
                                    source="issue 17: never move an estimate that was not lost")
+    reloc_after_gps_s: float = param(10.0, "With map_relocalisation: this long after the last GPS fix a search "
+                                     "around the estimate checks where GPS left it (0: never).", unit="s", min=0.0,
+                                     max=86400.0, source="issue 17: a biased fix window leaves the estimate off")
+    reloc_particles_per_m: float = param(2.0, "Particles per metre of road (both directions) in the search region, "
+                                         "up to reloc_particles.", unit="1/m", min=0.01, max=1000.0,
+                                         source="issue 17; by measurement (a 1 km region of Helsinki: 0 wrong of "
+                                         "16 with 60,000)")
     reloc_seed: int = param(0, "Seed of the re-localisation's random numbers (runs are reproducible).", min=0,
                             max=2**31 - 1, source="reproducibility")
     relinearize_threshold: float = param(

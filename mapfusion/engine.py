@@ -35,7 +35,6 @@ from .roadmap import RoadMap
 from .smoother import Smoother
 from .stream import OnFinal, Release
 from .reanchoring import Reanchoring
-from .relocalise import Search
 from .track import Alignment, JumpGuard, Track, planar_of
 
 log = logging.getLogger(__name__)
@@ -98,8 +97,7 @@ class MapFusion(Reanchoring):
         self._since_update = 0
         self._last_cov_check_t = -math.inf
         self._pos_sigma = self._lat_sigma = 0.0  # the estimate's positional σ: largest, across the vehicle
-        self._search = Search(road, self.cfg)  # re-localisation on the road network (issue 17)
-        self.relocalised_at: list[tuple[float, float]] = []  # (time, distance searched) of each map re-localisation
+        self._init_reanchoring()
 
     # ------------------------------------------------------------------ public API
     @property

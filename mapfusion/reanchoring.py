@@ -17,6 +17,7 @@ from .config import FusionConfig, StateModel
 from .counters import Counters
 from .errors import EngineError
 from .gps_gate import GpsGate
+from .initialisation import Initialiser
 from .relocalise import Located, Region, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
@@ -37,11 +38,18 @@ class Reanchoring:
     _association: MapAssociation
     _gate: GpsGate
     _search: Search
+    _checked_fix_t: float
+    initialiser: Initialiser
     _pos_sigma: float
     _lat_sigma: float
     _step: Callable[[int], gtsam.Pose3]
     _update: Callable[[], None]
     _begin: Callable[..., None]
+
+    def _init_reanchoring(self) -> None:
+        self._search = Search(self.road, self.cfg)  # re-localisation on the road network (issue 17)
+        self.relocalised_at = []  # (time, distance searched) of each map re-localisation
+        self._checked_fix_t = math.nan  # the last fix whose silence started a search
 
     @property
     def initialised(self) -> bool:  # (MapFusion's)
@@ -72,6 +80,18 @@ class Reanchoring:
         """A cold start's search is running (no estimate yet)."""
         return not self.initialised and self._search.active is not None
 
+    def _gps_went_silent(self, k: int) -> bool:
+        """True once per GPS outage: the last fix is ``reloc_after_gps_s`` old (the estimate is where GPS left
+        it — a biased fix window leaves it in the wrong place, and nothing but the map can tell)."""
+        fixes = self.initialiser.fixes
+        if not fixes or self.cfg.reloc_after_gps_s <= 0:
+            return False
+        last = fixes[-1][0]
+        if last == self._checked_fix_t or self.track.t[k] - last < self.cfg.reloc_after_gps_s:
+            return False
+        self._checked_fix_t = last
+        return True
+
     def _initialise_at(self, loc: Located) -> None:
         """A cold start's search has found the vehicle: the odometry's frame aligned so that its last pose
         is the found one (scale 1), the frames so far solved as at a GPS initialisation."""
@@ -93,6 +113,8 @@ class Reanchoring:
         if assoc.became_lost:
             assoc.became_lost = False
             search.begin(search.lost_region(pred.x(), pred.y(), assoc.unexplained_m))
+        elif search.active is None and self._gps_went_silent(k):  # a second opinion on where GPS left it
+            search.begin(Region(pred.x(), pred.y(), self.cfg.reloc_radius_m))
         if search.active is None:
             return
         x, y, yaw = planar_of(self.track.raw[k])

@@ -103,7 +103,8 @@ class RoadParticles:
         if near.size == 0:
             self.edge = np.zeros(0, dtype=np.int64)
             return 0
-        n = n or self.cfg.reloc_particles
+        if n is None:  # by the road length in the region (way-points ~1 m apart), both directions
+            n = int(min(self.cfg.reloc_particles, max(1000, self.cfg.reloc_particles_per_m * near.size)))
         pick = near[self.rng.integers(0, near.size, n)]
         travel = road.travel[pick]
         d = np.where(self.rng.random(n) < 0.5, 1, -1)

@@ -71,7 +71,7 @@ PRESETS: dict[str, FamilyPreset] = {
         "Lost! (issue 17): after initialisation the estimate is knocked off — the initial fixes carry a 50–200 m "
         "bias, or the VO loses track for 8 s and re-initialises with a 30–300 m jump and up to 30° of heading "
         "error — and GPS never returns; the engine re-localises on the road network (map_relocalisation)",
-        {**_DRIVE, "mapfusion": {"map_relocalisation": True}},
+        {"duration_s": 600.0, "min_route_m": 3000.0, "mapfusion": {"map_relocalisation": True}},
         ("helsinki", "kotka"), (1, 2, 3), weather=("clear",),
         claim="at least 90% of runs re-localised within 500 m of driving; mean online error after re-localisation "
               "at most 5 m",

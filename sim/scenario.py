@@ -227,10 +227,10 @@ class KidnapConfig:
                               source="issue 17")
     heading_max_deg: float = param(30.0, "vo_jump: largest heading error at the re-initialisation (either sign).",
                                    unit="deg", min=0.0, max=180.0, source="issue 17")
-    at_min_s: float = param(150.0, "vo_jump: earliest time of the outage from the start (after the default 120 s "
-                            "GPS window).", unit="s", min=0.0, max=86400.0)
-    at_max_s: float = param(300.0, "vo_jump: latest time of the outage from the start.", unit="s", min=0.0,
-                            max=86400.0)
+    at_min_m: float = param(100.0, "vo_jump: earliest start of the outage, in metres driven after the last GPS "
+                            "fix.", unit="m", min=0.0, max=1000000.0, source="issue 17: after initialisation")
+    at_max_m: float = param(500.0, "vo_jump: latest start of the outage after the last fix (a drive that ends "
+                            "sooner has no kidnap).", unit="m", min=0.0, max=1000000.0)
     gap_s: float = param(8.0, "vo_jump: the VO's outage before it re-initialises (no frames): long enough that "
                          "the jump is not an impossible speed.", unit="s", min=0.0, max=3600.0)
 
@@ -364,7 +364,7 @@ def _scenario_from_dict(data: dict, where: str, base_dir: Path | None, resolve: 
         raise ScenarioError(f"{where}: name {sc.name!r} must be one path component of at most 128 letters, digits, "
                             "'_', '.', '+' or '-', not starting with '.', '+' or '-' (it names the run's directory)")
     k = sc.kidnap
-    if k.bias_max_m < k.bias_min_m or k.jump_max_m < k.jump_min_m or k.at_max_s < k.at_min_s:
+    if k.bias_max_m < k.bias_min_m or k.jump_max_m < k.jump_min_m or k.at_max_m < k.at_min_m:
         raise ScenarioError(f"{where}: kidnap: a *_max below its *_min")
     if sc.gps.source is GpsSource.recorded and not sc.truth:
         raise ScenarioError(f"{where}: gps.source = \"recorded\" needs a recorded drive (truth = ...)")

@@ -552,8 +552,8 @@ class Kidnap:
 def apply_kidnap(cfg, truth: Truth, odo: OdometryOutput, gps: GpsOutput, rng: np.random.Generator
                  ) -> tuple[OdometryOutput, GpsOutput, Kidnap | None]:
     """The ``[kidnap]`` of a scenario applied to its sensors: ``gps_bias`` moves every fix by one drawn
-    vector (the kidnap is at the start); ``vo_jump`` removes the VO's frames for ``gap_s`` from a drawn
-    time and turns and shifts every later pose (in the odometry's own frame) by a drawn
+    vector (the kidnap counts from the last fix: until then the estimate is where the fixes say); ``vo_jump`` removes the VO's frames for ``gap_s`` from a drawn
+    distance after the last fix and turns and shifts every later pose (in the odometry's own frame) by a drawn
     heading error and jump, as a VO that re-initialises in the wrong place does."""
     kind = getattr(cfg.kind, "value", cfg.kind)
     if kind == "none":
@@ -562,11 +562,19 @@ def apply_kidnap(cfg, truth: Truth, odo: OdometryOutput, gps: GpsOutput, rng: np
     if kind == "gps_bias":
         d = float(rng.uniform(cfg.bias_min_m, cfg.bias_max_m))
         moved = dataclasses.replace(gps, x_m=gps.x_m + d * math.cos(bearing), y_m=gps.y_m + d * math.sin(bearing))
-        return odo, moved, Kidnap(kind, float(truth.t_s[0]), 0.0, d, bearing)
+        # the estimate is knocked off where the biased fixes end (while they come it is where they say)
+        t_end = float(gps.t_s[-1]) if len(gps.t_s) else float(truth.t_s[0])
+        k = int(min(np.searchsorted(truth.t_s, t_end), len(truth) - 1))
+        driven = float(np.sum(np.hypot(np.diff(truth.x_m[:k + 1]), np.diff(truth.y_m[:k + 1]))))
+        return odo, moved, Kidnap(kind, t_end, driven, d, bearing)
     d = float(rng.uniform(cfg.jump_min_m, cfg.jump_max_m))
     heading = math.radians(float(rng.uniform(-cfg.heading_max_deg, cfg.heading_max_deg)))
-    t_k = float(truth.t_s[0]) + float(rng.uniform(cfg.at_min_s, cfg.at_max_s))
     driven = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(truth.x_m), np.diff(truth.y_m)))))
+    last_fix = int(min(np.searchsorted(truth.t_s, gps.t_s[-1]), len(truth) - 1)) if len(gps.t_s) else 0
+    at_m = driven[last_fix] + float(rng.uniform(cfg.at_min_m, cfg.at_max_m))
+    if at_m > driven[-1]:
+        return odo, gps, None  # the drive ends first
+    t_k = float(truth.t_s[int(np.searchsorted(driven, at_m))])
     t_out = truth.t_s[odo.frame_index]
     gone = (t_out > t_k) & (t_out <= t_k + cfg.gap_s)
     after = t_out > t_k + cfg.gap_s

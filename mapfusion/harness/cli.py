@@ -459,6 +459,9 @@ def fuse(
                                                         "metres of LAT,LON and the odometry's shape finds it on the "
                                                         "map (issue 17); the odometry must be metric. The estimate "
                                                         "begins once found.")] = None,
+    plot_search: Annotated[Optional[Path], typer.Option("--plot-search", help="With --start-region: also draw the "
+                                                        "search (PNG): its particles over the map at four moments up "
+                                                        "to the vehicle found.")] = None,
 ) -> None:
     """Run the engine on recorded odometry and GPS with an OSM map; write the online (causal) estimate."""
     from mapfusion.replay import OdometryFormat, OdometryFrame, load_fusion_config
@@ -470,6 +473,10 @@ def fuse(
     _check_output_file(out, "--out", given)
     if smoothed is not None:
         _check_output_file(smoothed, "--smoothed", {**given, "--out": out})
+    if plot_search is not None:
+        if start_region is None:
+            _fail("--plot-search draws the search of --start-region: give both")
+        _check_output_file(plot_search, "--plot-search", {**given, "--out": out})
     if (odometry is None) == (bag is None):
         _fail("give --odometry FILE or --bag PATH (with --odometry-topic), not both or neither")
     if out_bag is not None:
@@ -509,6 +516,29 @@ def fuse(
         _fail(str(exc))
     _require_initialised(eng)
     _fuse_summary(eng, n, out)
+    if plot_search is not None and region is not None:
+        _draw_search(inputs, cfg, region, plot_search)
+
+
+def _draw_search(inputs, cfg, region: tuple[float, float, float], out: Path) -> None:
+    """``fuse --plot-search``: the cold start's search drawn (run again on the same odometry, same seed)."""
+    import numpy as np
+
+    from mapfusion.maps import resolve_map
+    from mapfusion.relocalise import Region
+    from mapfusion.replay import read_odometry
+    from mapfusion.roadmap import RoadMap
+
+    from .searchplot import plot_search, search_snapshots
+
+    road = RoadMap.from_osm(resolve_map(inputs.map))
+    _, poses = read_odometry(inputs.odometry, inputs.odometry_format, inputs.times, inputs.odometry_frame)
+    planar = np.column_stack([poses[:, 0, 3], poses[:, 1, 3], np.arctan2(poses[:, 1, 0], poses[:, 0, 0])])
+    x, y = road.projection.to_enu(region[0], region[1])
+    reg = Region(float(x), float(y), region[2])
+    shots, found = search_snapshots(road, cfg, reg, planar)
+    plot_search(road, reg, shots, found, out)
+    console.print(f"search drawn → {out}")
 
 
 def parse_start_region(text: str) -> tuple[float, float, float]:

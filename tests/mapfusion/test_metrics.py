@@ -202,3 +202,29 @@ def test_odometry_stats_recover_a_scale_a_drift_and_a_jump(c, drift):
     assert s.jumps_per_km * s.driven_m / 1000.0 == pytest.approx(1.0)
     if abs(drift) < 0.5:  # on a nearly straight odometry the jump is the only scale error
         assert abs(s.global_scale / c - 1) < 0.05
+
+
+
+def _relocalisation_brute(d, e, from_m, within=10.0, hold=100.0):
+    sel = d >= from_m
+    d, e = d[sel], e[sel]
+    for i in range(len(d)):
+        if not e[i] < within:
+            continue
+        j = i
+        while j < len(d) and e[j] < within:
+            j += 1
+        end = d[j] if j < len(d) else d[-1]
+        if end - d[i] >= hold:
+            return float(d[i] - from_m)
+    return None
+
+
+@given(steps=st.lists(st.floats(0.0, 20.0), min_size=2, max_size=300),
+       errors=st.lists(st.floats(0.0, 30.0), min_size=300, max_size=300), from_m=st.floats(0.0, 500.0))
+def test_relocalisation_distance_is_where_the_error_first_stays_small_for_100_m(steps, errors, from_m):
+    from mapfusion.metrics import relocalisation_m
+
+    d = np.cumsum(steps)
+    e = np.array(errors[: len(d)])
+    assert relocalisation_m(d, e, from_m) == _relocalisation_brute(d, e, from_m)

@@ -91,6 +91,9 @@ yaw_sigma_deg = 10.0
         ('map = "no/such/map.osm"', "no such map file"),
         ('[mapfusion]\nbackend = "magic"', "mapfusion.backend"),
         ('seed = 1\nseed =', "not valid TOML"),
+        ('[kidnap]\nkind = "teleport"', "kidnap.kind"),
+        ('[kidnap]\nkind = "gps_bias"\nbias_min_m = 300.0', "kidnap"),
+        ('[kidnap]\njump_m = 5.0', "unknown key kidnap.jump_m"),
     ],
 )
 def test_bad_scenarios_name_key_and_file(tmp_path, text, needle):
@@ -328,3 +331,11 @@ def test_kitti_real_family_pairs_each_result_with_its_drive(tmp_path, monkeypatc
         seq = sc.name.split("-")[2]
         assert sc.truth.endswith(f"kitti/{seq}") and sc.odometry.file.endswith(f"_{seq}.txt")
         assert sc.odometry.kind is OdometryKind.recorded and sc.gps.init_window_s == 30.0
+
+
+def test_a_kidnap_table_is_read_and_written_only_when_there_is_one(tmp_path):
+    sc = load_scenario(_write(tmp_path, '[kidnap]\nkind = "vo_jump"\njump_min_m = 40.0\njump_max_m = 80.0\n'))
+    assert sc.kidnap.kind.value == "vo_jump" and sc.kidnap.jump_min_m == 40.0
+    assert tomllib.loads(sc.to_toml())["kidnap"]["jump_max_m"] == 80.0
+    plain = load_scenario(_write(tmp_path, 'seed = 3\n', "plain.toml"))
+    assert "kidnap" not in tomllib.loads(plain.to_toml())  # (unchanged files and hashes for every other drive)

@@ -22,6 +22,7 @@ from sim.sensors import (
     simulate_imu,
     simulate_odometry,
     truth_poses,
+    apply_kidnap,
 )
 from tests.helpers import synthetic_truth
 
@@ -437,3 +438,61 @@ def test_fitted_presets_differ_from_the_paper_calibrated_base(kind):
     p = odometry_preset(kind, "clear")
     assert p.rotation_noise_rad > OdometryParams().rotation_noise_rad
     assert (p.unit_m_max < 1.0) == (kind == "mono")
+
+
+def _kidnap_inputs(seed: int):
+    truth = synthetic_truth("random", n=6000, seed=seed)
+    odo = simulate_odometry(truth, _quiet(), np.random.default_rng(seed))
+    g = simulate_gps(truth, GpsConfig(mode=GpsMode.init_only, init_window_s=60.0, outlier_probability=0.0),
+                     np.random.default_rng(seed))
+    return truth, odo, g
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 500))
+def test_a_gps_bias_kidnap_moves_every_fix_by_one_vector_in_range(seed):
+    from sim.scenario import KidnapConfig, KidnapKind
+
+    truth, odo, g = _kidnap_inputs(seed)
+    cfg = KidnapConfig(kind=KidnapKind.gps_bias, bias_min_m=50.0, bias_max_m=200.0)
+    odo2, g2, k = apply_kidnap(cfg, truth, odo, g, np.random.default_rng(seed))
+    shift = np.column_stack([g2.x_m - g.x_m, g2.y_m - g.y_m])
+    assert np.allclose(shift, shift[0]) and 50.0 <= np.hypot(*shift[0]) <= 200.0
+    assert odo2 is odo and k.kind == "gps_bias" and k.t_s == g.t_s[-1]  # counted from the last (biased) fix
+    assert math.isclose(k.distance_m, float(np.hypot(*shift[0])))
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 500))
+def test_a_vo_jump_kidnap_is_an_outage_then_one_jump_with_every_other_step_unchanged(seed):
+    from sim.scenario import KidnapConfig, KidnapKind
+
+    truth, odo, g = _kidnap_inputs(seed)
+    cfg = KidnapConfig(kind=KidnapKind.vo_jump, at_min_m=50.0, at_max_m=200.0, gap_s=8.0)
+    odo2, g2, k = apply_kidnap(cfg, truth, odo, g, np.random.default_rng(seed))
+    assert g2 is g and k is not None and 30.0 <= k.distance_m <= 300.0 and abs(k.heading_rad) <= math.radians(30)
+    resume = int(np.searchsorted(odo2.t_s, k.t_s))
+    gap = odo2.t_s[resume] - odo2.t_s[resume - 1]
+    assert 8.0 <= gap <= 8.0 + 2 * 0.1 and odo2.dropped.sum() >= 79
+    rel = np.linalg.inv(odo2.poses[:-1]) @ odo2.poses[1:]  # every relative step but the jump is the VO's own
+    j0 = {float(t): i for i, t in enumerate(odo.t_s)}
+    for i in range(len(odo2.t_s) - 1):
+        if i == resume - 1:
+            continue
+        a = j0[float(odo2.t_s[i])]
+        assert np.allclose(rel[i], np.linalg.inv(odo.poses[a]) @ odo.poses[a + 1], atol=1e-6)
+    # across the gap: the true motion, then the drawn turn and jump (in the odometry's frame)
+    a, b = j0[float(odo2.t_s[resume - 1])], j0[float(odo2.t_s[resume])]
+    moved = odo2.poses[resume, :2, 3] - odo.poses[b, :2, 3]
+    assert math.isclose(float(np.hypot(*moved)), k.distance_m, rel_tol=1e-9)
+    yaw = math.atan2(odo2.poses[resume, 1, 0], odo2.poses[resume, 0, 0]) - math.atan2(odo.poses[b, 1, 0],
+                                                                                       odo.poses[b, 0, 0])
+    assert math.isclose(math.remainder(yaw - k.heading_rad, 2 * math.pi), 0.0, abs_tol=1e-9)
+    assert a < b
+
+
+def test_no_kidnap_changes_nothing():
+    from sim.scenario import KidnapConfig
+
+    truth, odo, g = _kidnap_inputs(1)
+    assert apply_kidnap(KidnapConfig(), truth, odo, g, np.random.default_rng(0)) == (odo, g, None)
