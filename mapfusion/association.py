@@ -59,6 +59,7 @@ class MapAssociation:
         self._unexplained_m = 0.0
         self.lost = False  # no road explains the estimate (lost_events: hmm, or single-frame with map_relocalisation)
         self.became_lost = False  # set when the estimate becomes lost; the engine clears it
+        self.explained_xy: tuple[float, float] | None = None  # the estimate where a road last explained it
         self._since_prior_m = math.inf  # odometry distance since the last map prior
 
     def reset(self) -> None:
@@ -83,7 +84,7 @@ class MapAssociation:
             step_m = 0.0 if self._moved_m == math.inf else self._moved_m
             self._last = self.hmm.step(candidates(road, near, x, y, yaw, w), step_m)
             self._moved_m = 0.0
-            self._watch_lost(self._last.explained, step_m)
+            self._watch_lost(self._last.explained, step_m, pred)
         st = self._last
         if st is None or st.best is None:
             return None, False
@@ -97,10 +98,11 @@ class MapAssociation:
             m = match(road, x, y, yaw, radius, w, candidates=on_edge) if on_edge.size else None
         return m, m is not None and st.posterior >= cfg.hmm_min_posterior
 
-    def _watch_lost(self, explained: bool, moved_m: float) -> None:
+    def _watch_lost(self, explained: bool, moved_m: float, pred: gtsam.Pose3) -> None:
         """Lost after ``hmm_lost_after_m`` of unexplained steps; found again at the next explained one."""
         if explained:
             self._unexplained_m, self.lost = 0.0, False
+            self.explained_xy = (pred.x(), pred.y())
             return
         self._unexplained_m += moved_m
         if not self.lost and self._unexplained_m >= self.cfg.hmm_lost_after_m:
@@ -175,7 +177,7 @@ class MapAssociation:
         else:
             m, confident = self.match(pred), False
             if self.cfg.map_relocalisation:  # (the single-frame path watches for lost only when it can act on it)
-                self._watch_lost(m is not None and m.cost <= self.cfg.hmm_lost_cost_m, moved_m)
+                self._watch_lost(m is not None and m.cost <= self.cfg.hmm_lost_cost_m, moved_m, pred)
         self._since_prior_m += moved_m
         if m is None:
             return None, None

@@ -580,11 +580,12 @@ class FusionConfig:
                                        source="issue 17; by measurement")
     reloc_min_distance_m: float = param(100.0, "Driving before a re-localisation may converge.", unit="m", min=0.0,
                                         max=100000.0, source="issue 17; by measurement")
-    reloc_radius_m: float = param(300.0, "Radius of the search region around the last trusted position when lost.",
+    reloc_radius_m: float = param(300.0, "Radius of the search region around the estimate where a road last explained "
+                                  "it, when lost (and around the estimate when GPS falls silent).",
                                   unit="m", min=1.0, max=100000.0, source="issue 17")
-    reloc_radius_per_m: float = param(0.5, "Growth of that radius per metre driven since the last trusted "
-                                      "position.", unit="m/m", min=0.0, max=10.0,
-                                      source="issue 17: a drift of up to half the distance driven")
+    reloc_radius_per_m: float = param(1.0, "Growth of that radius per metre driven since a road last explained "
+                                      "the estimate.", unit="m/m", min=0.0, max=10.0,
+                                      source="issue 17: the vehicle is at most that far from there")
     reloc_max_radius_m: float = param(2000.0, "Largest search region.", unit="m", min=1.0, max=100000.0,
                                       source="issue 17: 2 km in a city at 10 Hz on one core")
     reloc_confirm_m: float = param(15.0, "A re-localisation within this distance of the current estimate only "
@@ -593,10 +594,21 @@ class FusionConfig:
     reloc_after_gps_s: float = param(10.0, "With map_relocalisation: this long after the last GPS fix a search "
                                      "around the estimate checks where GPS left it (0: never).", unit="s", min=0.0,
                                      max=86400.0, source="issue 17: a biased fix window leaves the estimate off")
-    reloc_particles_per_m: float = param(2.0, "Particles per metre of road (both directions) in the search region, "
+    reloc_particles_per_m: float = param(4.0, "Particles per metre of road (both directions) in the search region, "
                                          "up to reloc_particles.", unit="1/m", min=0.01, max=1000.0,
                                          source="issue 17; by measurement (a 1 km region of Helsinki: 0 wrong of "
                                          "16 with 60,000)")
+    reloc_hold_m: float = param(100.0, "A converged cluster counts once it has held this far, moving with the "
+                                "vehicle.", unit="m", min=0.0, max=100000.0,
+                                source="issue 17: wrong clusters on straight roads die at the next turn")
+    reloc_give_up_m: float = param(1500.0, "A search not converged after this much driving starts again around the "
+                                   "estimate with twice the radius.", unit="m", min=10.0, max=1000000.0,
+                                   source="issue 17")
+    reloc_gap_s: float = param(3.0, "An odometry gap longer than this (the VO lost track and re-initialised) starts "
+                               "a search around the estimate before it.", unit="s", min=0.0, exclusive_min=True,
+                               max=86400.0, source="issue 17: a VO re-initialises with a pose jump")
+    reloc_gap_speed_mps: float = param(15.0, "Speed assumed through such a gap: the region's radius grows by it.",
+                                       unit="m/s", min=0.0, max=100.0, source="issue 17: city speeds")
     reloc_seed: int = param(0, "Seed of the re-localisation's random numbers (runs are reproducible).", min=0,
                             max=2**31 - 1, source="reproducibility")
     relinearize_threshold: float = param(

@@ -110,11 +110,19 @@ class Reanchoring:
         """From the moment the estimate is lost, a search on the road network; once it converges away from
         the estimate, the smoother is re-anchored there (issue 17; near the estimate it only confirms it)."""
         assoc, search = self._association, self._search
+        gap_s = self.track.t[k] - self.track.t[k - 1]
+        if gap_s > self.cfg.reloc_gap_s:  # the odometry lost track: where it resumed is not to be trusted
+            prev = self.track.online[k - 1] or pred
+            search.begin(Region(prev.x(), prev.y(), self.cfg.reloc_radius_m + gap_s * self.cfg.reloc_gap_speed_mps))
+            return
         if assoc.became_lost:
             assoc.became_lost = False
-            search.begin(search.lost_region(pred.x(), pred.y(), assoc.unexplained_m))
+            if search.active is None:  # (a running search goes on: its particles know more than a new one's)
+                x, y = assoc.explained_xy or (pred.x(), pred.y())
+                search.begin(search.lost_region(x, y, assoc.unexplained_m))
         elif search.active is None and self._gps_went_silent(k):  # a second opinion on where GPS left it
             search.begin(Region(pred.x(), pred.y(), self.cfg.reloc_radius_m))
+        search.widen_if_stuck(pred.x(), pred.y())
         if search.active is None:
             return
         x, y, yaw = planar_of(self.track.raw[k])

@@ -301,6 +301,8 @@ class Relocaliser:
         self._last: tuple[float, float] | None = None
         self._moved = 0.0
         self.way_points_in_region = 0
+        self._held_m = 0.0  # driving over which the posterior has stayed converged on one moving cluster
+        self._held: Located | None = None
 
     def add(self, x: float, y: float, yaw: float) -> Located | None:
         """One odometry pose; the converged answer, or None (not yet, or nothing in the region)."""
@@ -317,9 +319,17 @@ class Relocaliser:
         if self._moved < self.cfg.reloc_step_m:
             return None
         chord = np.array([x - self._anchor[0], y - self._anchor[1]])
-        self.particles.step(self._moved, chord)
-        self._anchor, self._moved = (x, y), 0.0
-        return self.particles.located(yaw)
+        moved, self._anchor, self._moved = self._moved, (x, y), 0.0
+        self.particles.step(moved, chord)
+        loc = self.particles.located(yaw)
+        # a cluster counts once it has held for reloc_hold_m, moving with the vehicle (a wrong one that
+        # happened to gather the mass on a straight stretch usually dies at the next turn)
+        prev = self._held
+        same = prev is not None and loc is not None and \
+            math.hypot(loc.x_m - prev.x_m, loc.y_m - prev.y_m) <= moved * 1.5 + self.cfg.reloc_converge_radius_m
+        self._held_m = self._held_m + moved if same else 0.0
+        self._held = loc
+        return loc if loc is not None and self._held_m >= self.cfg.reloc_hold_m else None
 
 
 class Search:
@@ -339,9 +349,16 @@ class Search:
         self.active = Relocaliser(self.road, self.cfg, region, self.cfg.reloc_seed + self.searches)
         self.searches += 1
 
+    def widen_if_stuck(self, x_m: float, y_m: float) -> None:
+        """A search that has not converged over ``reloc_give_up_m`` starts again around (x, y) with twice
+        its radius (up to ``reloc_max_radius_m``): the vehicle may have left the region."""
+        a = self.active
+        if a is not None and a.particles.driven_m >= self.cfg.reloc_give_up_m:
+            self.begin(Region(x_m, y_m, min(2.0 * a.region.radius_m, self.cfg.reloc_max_radius_m)))
+
     def lost_region(self, x_m: float, y_m: float, unexplained_m: float) -> Region:
-        """Where to look when lost: around the current estimate, the radius grown with the distance
-        driven since the estimate was last explained by a road."""
+        """Where to look when lost: around the estimate where a road last explained it (``x_m``, ``y_m``), the
+        radius grown with the distance driven since (the vehicle is at most that far from there)."""
         cfg = self.cfg
         return Region(x_m, y_m, min(cfg.reloc_radius_m + cfg.reloc_radius_per_m * unexplained_m,
                                     cfg.reloc_max_radius_m))
