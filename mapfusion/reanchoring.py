@@ -109,6 +109,8 @@ class Reanchoring:
     def _search_when_lost(self, k: int, pred: gtsam.Pose3) -> None:
         """From the moment the estimate is lost, a search on the road network; once it converges away from
         the estimate, the smoother is re-anchored there (issue 17; near the estimate it only confirms it)."""
+        if not self.cfg.use_map:  # (the baseline: no map, so no search on it)
+            return
         assoc, search = self._association, self._search
         gap_s = self.track.t[k] - self.track.t[k - 1]
         if gap_s > self.cfg.reloc_gap_s:  # the odometry lost track: where it resumed is not to be trusted

@@ -267,6 +267,30 @@ def bench_kdtree(road: RoadMap, n_poses: int = 5000, radius_m: float = 20.0, see
     return n_poses / (time.perf_counter() - t0)
 
 
+def bench_relocalise(road: RoadMap, radius_m: float = 2000.0, length_m: float = 2000.0, speed_mps: float = 10.0,
+                     rate_hz: float = 10.0, seed: int = 0) -> dict:
+    """The road-network search (issue 17) fed a 10 Hz drive along the map's roads from a region of ``radius_m``
+    around its start: its cost against the drive's own duration (``realtime_factor`` > 1: it keeps up, on
+    one core)."""
+    from mapfusion.config import FusionConfig
+    from mapfusion.relocalise import Region, Relocaliser
+
+    xy = route_walk(road, length_m, seed)
+    s = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))))
+    u = np.arange(0.0, s[-1], speed_mps / rate_hz)
+    x, y = np.interp(u, s, xy[:, 0]), np.interp(u, s, xy[:, 1])
+    yaw = np.arctan2(np.gradient(y), np.gradient(x))
+    reloc = Relocaliser(road, FusionConfig(), Region(float(x[0]), float(y[0]), radius_m), seed)
+    t0 = time.perf_counter()
+    for k in range(len(x)):
+        reloc.add(float(x[k]), float(y[k]), float(yaw[k]))
+    spent = time.perf_counter() - t0
+    drive_s = len(x) / rate_hz
+    return {"benchmark": "relocalise", "region_radius_m": radius_m, "particles": len(reloc.particles),
+            "way_points_in_region": reloc.way_points_in_region, "frames": len(x), "drive_s": drive_s,
+            "compute_s": spent, "realtime_factor": drive_s / spent}
+
+
 def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (10.0, 15.0), repeats: int = 3):
     """``mapfusion bench``: one dict per benchmark (``benchmark`` names it), each with the anchor
     measured in the same run and the ratio to it. The engine and its anchor run ``repeats`` times,
@@ -304,6 +328,7 @@ def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (1
            "growth": med([h.growth for _, _, h in rounds]), "ratio_to_bare": med(hmm_ratio),
            "ratio_to_single_frame": med([h / e for h, e in zip(hmm_fps, eng_fps)]),
            "rounds": {"frames_per_s": hmm_fps, "ratio_to_bare": hmm_ratio}}
+    yield bench_relocalise(road)
     singles, batches, kds, settled = [], [], [], 0.0
     for _ in range(max(1, repeats)):
         m = bench_match(road)

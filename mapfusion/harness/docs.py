@@ -29,7 +29,7 @@ def _table(cls: type) -> list[str]:
 
 def configuration_markdown() -> str:
     """The configuration reference page."""
-    from sim.scenario import GpsConfig, ImuParams, RouteConfig, Scenario, TrafficConfig, WeatherConfig
+    from sim.scenario import GpsConfig, ImuParams, KidnapConfig, RouteConfig, Scenario, TrafficConfig, WeatherConfig
     from sim.sensors import OdometryParams, WheelParams
 
     out = ["# Configuration reference", "",
@@ -46,7 +46,9 @@ def configuration_markdown() -> str:
                        ("`[odometry]`: the preset fields a scenario may replace", OdometryParams),
                        ("`[wheel]`: the wheel-speed sensor of odometry kinds vo+wheel and vio+wheel (`vehicle = "
                         "\"car\" | \"truck\"` picks the preset; any field below replaces the preset's; the gyro is "
-                        "the `[imu]`'s)", WheelParams)):
+                        "the `[imu]`'s)", WheelParams),
+                       ("`[kidnap]`: the estimate knocked off after initialisation (issue 17; the `kidnapped` "
+                        "family)", KidnapConfig)):
         out += ["", f"## {title}", ""] + _table(cls)
     return "\n".join(out) + "\n"
 

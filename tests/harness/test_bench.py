@@ -15,7 +15,9 @@ def _median(xs):
 
 def test_bench_lines_carry_their_anchors_and_ratios():
     rows = {r["benchmark"]: r for r in run_benchmarks(duration_s=300.0, city_km=(2.0, 2.0), repeats=3)}
-    assert set(rows) == {"roadmap_build", "engine", "engine_hmm", "matcher"}
+    assert set(rows) == {"roadmap_build", "engine", "engine_hmm", "matcher", "relocalise"}
+    rel = rows["relocalise"]
+    assert rel["particles"] > 0 and math.isclose(rel["realtime_factor"], rel["drive_s"] / rel["compute_s"])
     eng, hmm = rows["engine"], rows["engine_hmm"]
     assert eng["map_priors"] > 0  # the drive exercises the map
     # each round's ratio is to the anchor measured beside it; the line gives their median
