@@ -598,9 +598,10 @@ class FusionConfig:
                                          "up to reloc_particles.", unit="1/m", min=0.01, max=1000.0,
                                          source="issue 17; by measurement (a 1 km region of Helsinki: 0 wrong of "
                                          "16 with 60,000)")
-    reloc_hold_m: float = param(100.0, "A converged cluster counts once it has held this far, moving with the "
+    reloc_hold_m: float = param(0.0, "A converged cluster counts once it has held this far, moving with the "
                                 "vehicle.", unit="m", min=0.0, max=100000.0,
-                                source="issue 17: wrong clusters on straight roads die at the next turn")
+                                source="issue 17: 20 kidnapped runs, hold 0 / 50 / 100 m: 12 / 9 / 9 found within "
+                                "500 m, mean Map-Fusion ATE 76.9 / 88.8 / 103.0 m")
     reloc_give_up_m: float = param(1500.0, "A search not converged after this much driving starts again around the "
                                    "estimate with twice the radius.", unit="m", min=10.0, max=1000000.0,
                                    source="issue 17")

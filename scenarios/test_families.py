@@ -19,7 +19,8 @@ from .conftest import FAMILIES, family_results, load_baselines
 
 pytestmark = pytest.mark.sumo
 
-FAMILY_NAMES = ("clear", "rain", "rain-tunnel", "heavy-rain", "intersections", "kitti", "kitti-real", "kitti-realism")
+FAMILY_NAMES = ("clear", "rain", "rain-tunnel", "heavy-rain", "intersections", "kitti", "kitti-real", "kitti-realism",
+                "kidnapped")
 # the larger set: pytest -m full scenarios/ (kitti-real has one run per real odometry result: no larger set)
 FULL_NAMES = tuple(f"{f}-full" for f in FAMILY_NAMES if (FAMILIES / f"{f}-full.toml").exists())
 
@@ -137,3 +138,26 @@ def test_rain_tunnel_with_wheel_and_gyro_is_never_lost_and_within_5_m_in_the_zon
     zones = [r["tunnel_rmse_mapfusion_m"] for r in rows]
     assert all(z is not None and np.isfinite(z) for z in zones), zones
     assert np.mean(zones) <= 5.0
+
+
+def _kidnapped(request):
+    rows = [r for r in _ok(request, "kidnapped") if r.get("kidnap")]
+    assert rows, "no run of the family was kidnapped"
+    return rows
+
+
+def test_kidnapped_runs_are_relocalised_within_500_m(request):
+    """Issue 17: after the kidnap (a biased fix window, or a VO that re-initialises 30–300 m off) and with no
+    GPS after it, at least 90% of the runs are found again by the map within 500 m of driving."""
+    rows = _kidnapped(request)
+    found = [r for r in rows if r["relocalised"] and r["relocalisation_m"] <= 500.0]
+    assert len(found) >= 0.9 * len(rows), sorted((r["scenario"], r["relocalisation_m"]) for r in rows)
+
+
+def test_kidnapped_runs_are_within_5_m_after_relocalisation_and_never_stay_wrong(request):
+    """Issue 17: after re-localisation the mean online error is at most 5 m; no wrong convergence stays
+    wrong for more than 200 m."""
+    rows = [r for r in _kidnapped(request) if r["relocalised"]]
+    assert rows
+    assert np.mean([r["online_mean_after_relocalisation_m"] for r in rows]) <= 5.0
+    assert max(r["wrong_relocalisation_max_m"] for r in rows) <= 200.0

@@ -59,9 +59,22 @@ def _kidnap_metrics(res: FusionResult, truth: Truth, kidnap) -> dict:
     driven = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(truth.x_m), np.diff(truth.y_m)))))
     err = np.hypot(xyz[ia, 0] - truth.x_m[ib], xyz[ia, 1] - truth.y_m[ib])
     k = int(np.searchsorted(truth.t_s, kidnap.t_s - 1e-9))
-    r = relocalisation_m(driven[ib], err, float(driven[min(k, len(driven) - 1)]))
+    from_m = float(driven[min(k, len(driven) - 1)])
+    r = relocalisation_m(driven[ib], err, from_m)
+    after = err[driven[ib] >= from_m + r] if r is not None else np.empty(0)
+    # a re-anchoring more than 25 m from the truth is a wrong convergence: how far it stayed wrong
+    t_est = t[ia]
+    wrong_m = []
+    for t_r, _ in res.engine.relocalised_at:
+        i = int(np.searchsorted(t_est, t_r - 1e-9))
+        if i < len(err) and err[i] > 25.0:
+            back = np.flatnonzero(err[i:] <= 25.0)
+            end = i + int(back[0]) if back.size else len(err) - 1
+            wrong_m.append(float(driven[ib][end] - driven[ib][i]))
     return {"relocalised": r is not None, "relocalisation_m": r, "kidnap": kidnap.kind,
-            "kidnap_distance_m": kidnap.distance_m, "kidnap_heading_deg": math.degrees(kidnap.heading_rad)}
+            "kidnap_distance_m": kidnap.distance_m, "kidnap_heading_deg": math.degrees(kidnap.heading_rad),
+            "online_mean_after_relocalisation_m": float(np.mean(after)) if after.size else None,
+            "wrong_relocalisations": len(wrong_m), "wrong_relocalisation_max_m": max(wrong_m, default=0.0)}
 
 
 def _evaluate(res: FusionResult, truth: Truth, estimator: Estimator, deloc_m: float) -> dict:
@@ -209,7 +222,8 @@ def write_run(d: Path, sc: Scenario, o: RunOutcome, plot: bool = True) -> None:
     (d / "metrics.json").write_text(json.dumps(o.metrics, indent=2) + "\n")
     eng = o.mapfusion.engine
     events = {"map_prior_t": [float(t) for t in eng.map_prior_times()], "counters": eng.counters.as_dict(),
-              "initialised_at_s": eng.initialised_at, "scale": eng.scale, "scale_sigma": eng.scale_sigma}
+              "initialised_at_s": eng.initialised_at, "scale": eng.scale, "scale_sigma": eng.scale_sigma,
+              "map_relocalisations": [{"t_s": t, "searched_m": m} for t, m in eng.relocalised_at]}
     (d / "fusion_events.json").write_text(json.dumps(events, indent=2) + "\n")
     from .export import write_geojson
 

@@ -187,6 +187,8 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
     ("fuse-config-negative", ["fuse", "--map", "{in}/map.osm", "--odometry", "{in}/odometry.tum", "--config",
                               "{d}/c.toml", "--out", "{d}/e.tum"], {"c.toml": "[mapfusion]\nlane_width_m = -1\n"},
      ["lane_width_m"]),
+    ("fuse-plot-search-alone", ["fuse", "--map", "{in}/map.osm", "--odometry", "{in}/odometry.tum",
+                                "--plot-search", "{d}/s.png", "--out", "{d}/e.tum"], {}, ["--plot-search"]),
     ("fuse-start-region-two-numbers", ["fuse", "--map", "{in}/map.osm", "--odometry", "{in}/odometry.tum",
                                        "--start-region", "60.2,24.9", "--out", "{d}/e.tum"], {}, ["--start-region"]),
     ("fuse-start-region-radius", ["fuse", "--map", "{in}/map.osm", "--odometry", "{in}/odometry.tum",
