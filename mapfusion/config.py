@@ -592,7 +592,9 @@ class FusionConfig:
                                    "confirms it (no re-anchoring).", unit="m", min=0.0, max=10000.0,
                                    source="issue 17: never move an estimate that was not lost")
     reloc_after_gps_s: float = param(10.0, "With map_relocalisation: this long after the last GPS fix a search "
-                                     "around the estimate checks where GPS left it (0: never).", unit="s", min=0.0,
+                                     "around the estimate checks where GPS left it; while fixes come more often, "
+                                     "GPS places the estimate and no search runs (0: searches regardless of GPS).",
+                                     unit="s", min=0.0,
                                      max=86400.0, source="issue 17: a biased fix window leaves the estimate off")
     reloc_particles_per_m: float = param(4.0, "Particles per metre of road (both directions) in the search region, "
                                          "up to reloc_particles.", unit="1/m", min=0.01, max=1000.0,
@@ -608,7 +610,12 @@ class FusionConfig:
     reloc_gap_s: float = param(3.0, "An odometry gap longer than this (the VO lost track and re-initialised) starts "
                                "a search around the estimate before it.", unit="s", min=0.0, exclusive_min=True,
                                max=86400.0, source="issue 17: a VO re-initialises with a pose jump")
-    reloc_gap_speed_mps: float = param(15.0, "Speed assumed through such a gap: the region's radius grows by it.",
+    reloc_gap_margin_m: float = param(100.0, "Radius of the search after an odometry gap beyond the distance the "
+                                      "vehicle may have driven through it (the estimate before the gap was good to "
+                                      "about this).", unit="m", min=0.0, max=100000.0,
+                                      source="issue 17: a smaller region holds fewer look-alike paths")
+    reloc_gap_speed_mps: float = param(15.0, "Speed assumed through such a gap: the region's radius is "
+                                       "reloc_gap_margin_m + this × the gap.",
                                        unit="m/s", min=0.0, max=100.0, source="issue 17: city speeds")
     reloc_seed: int = param(0, "Seed of the re-localisation's random numbers (runs are reproducible).", min=0,
                             max=2**31 - 1, source="reproducibility")

@@ -112,10 +112,14 @@ class Reanchoring:
         if not self.cfg.use_map:  # (the baseline: no map, so no search on it)
             return
         assoc, search = self._association, self._search
+        fixes = self.initialiser.fixes
+        if fixes and self.track.t[k] - fixes[-1][0] < self.cfg.reloc_after_gps_s:
+            search.active = None  # GPS is here: it places the estimate, not a search of the map
+            return
         gap_s = self.track.t[k] - self.track.t[k - 1]
         if gap_s > self.cfg.reloc_gap_s:  # the odometry lost track: where it resumed is not to be trusted
             prev = self.track.online[k - 1] or pred
-            search.begin(Region(prev.x(), prev.y(), self.cfg.reloc_radius_m + gap_s * self.cfg.reloc_gap_speed_mps))
+            search.begin(Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + gap_s * self.cfg.reloc_gap_speed_mps))
             return
         if assoc.became_lost:
             assoc.became_lost = False
