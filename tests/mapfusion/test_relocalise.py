@@ -173,3 +173,62 @@ def test_a_lost_estimate_is_found_again_on_the_road_network(road):
     assert err_off > 50.0  # the bias stays without the search
     assert on.counters.lost_events >= 1 and on.counters.map_relocalisations >= 1
     assert err_on < 15.0, (err_on, on.relocalised_at)
+
+
+def _feed(road, cfg, x, y, ox, oy, oyaw, fixes_until_k: int, fix_offset=(0.0, 0.0), skip=range(0)):
+    """The engine over a drive: odometry every frame but those in ``skip`` (an outage), a fix every 10 frames
+    before ``fixes_until_k`` (moved by ``fix_offset``); returns the engine and its final error."""
+    from mapfusion import MapFusion
+
+    eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
+    last = None
+    for k in range(len(x)):
+        if k % 10 == 0 and k < fixes_until_k:
+            lat, lon = road.projection.to_geo(x[k] + fix_offset[0], y[k] + fix_offset[1])
+            eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
+        if k in skip:
+            continue
+        rel = _rel(ox, oy, oyaw, k) if last is None or last == k - 1 else \
+            np.linalg.inv(_abs(ox, oy, oyaw, last)) @ _abs(ox, oy, oyaw, k)
+        eng.add_odometry(0.1 * k, rel)
+        last = k
+    eng.finish()
+    p = eng.estimate()
+    return eng, math.hypot(p.x() - x[-1], p.y() - y[-1])
+
+
+def _abs(ox, oy, oyaw, k):
+    m = np.eye(4)
+    m[:2, :2] = [[math.cos(oyaw[k]), -math.sin(oyaw[k])], [math.sin(oyaw[k]), math.cos(oyaw[k])]]
+    m[0, 3], m[1, 3] = ox[k], oy[k]
+    return m
+
+
+def test_a_vo_that_resumes_in_the_wrong_place_after_an_outage_is_found_again(road):
+    """The VO loses track for 8 s after 600 m and resumes 120 m off with a 20° heading error (GPS long gone):
+    with map_relocalisation the gap starts a search and the engine ends within 15 m; without, it stays off."""
+    seed = 4
+    x, y, yaw, _ = graph_route(road, seed, 2200.0)
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
+    k0, gap = 600, range(601, 681)
+    c, s_ = math.cos(math.radians(20.0)), math.sin(math.radians(20.0))
+    px, py = ox[k0 + 81], oy[k0 + 81]
+    jx, jy = ox[k0 + 81:] - px, oy[k0 + 81:] - py
+    ox, oy, oyaw = ox.copy(), oy.copy(), oyaw.copy()
+    ox[k0 + 81:], oy[k0 + 81:] = px + 120.0 + c * jx - s_ * jy, py + s_ * jx + c * jy
+    oyaw[k0 + 81:] += math.radians(20.0)
+    off, err_off = _feed(road, FusionConfig(), x, y, ox, oy, oyaw, 400, skip=gap)
+    on, err_on = _feed(road, FusionConfig(map_relocalisation=True), x, y, ox, oy, oyaw, 400, skip=gap)
+    assert err_off > 50.0
+    assert on.counters.map_relocalisations >= 1 and err_on < 15.0, (err_on, on.relocalised_at)
+
+
+def test_no_search_runs_while_gps_comes(road):
+    """With fixes every second to the end, GPS places the estimate: map_relocalisation adds no re-anchoring,
+    and the estimate is the one without it."""
+    seed = 5
+    x, y, yaw, _ = graph_route(road, seed, 1200.0)
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
+    off, err_off = _feed(road, FusionConfig(), x, y, ox, oy, oyaw, len(x))
+    on, err_on = _feed(road, FusionConfig(map_relocalisation=True), x, y, ox, oy, oyaw, len(x))
+    assert on.counters.map_relocalisations == 0 and err_on == pytest.approx(err_off, abs=1e-9)
