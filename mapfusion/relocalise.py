@@ -341,7 +341,6 @@ class Search:
     def __init__(self, road: RoadMap, cfg: FusionConfig) -> None:
         self.road, self.cfg = road, cfg
         self.active: Relocaliser | None = None
-        self.started_m = 0.0  # odometry distance at the search's start
         self.searches = 0
 
     def begin(self, region: Region) -> None:
