@@ -333,10 +333,10 @@ class Relocaliser:
 
 
 class Search:
-    """When and where the engine searches the road network (issue 17): a cold start in a region given
-    by the caller, or — with ``map_relocalisation`` — once the road association calls the estimate
-    lost, in a region around the current estimate grown with the distance driven since it was last
-    explained. It feeds the odometry's planar poses (in metres) to a :class:`Relocaliser`."""
+    """When the engine searches the road network (issue 17), and the running search: a cold start in a
+    region given by the caller or, with ``map_relocalisation``, a search the engine begins (after an
+    odometry gap, when the estimate is lost, when GPS falls silent). It feeds the odometry's planar poses
+    (in metres) to a :class:`Relocaliser`."""
 
     def __init__(self, road: RoadMap, cfg: FusionConfig) -> None:
         self.road, self.cfg = road, cfg
