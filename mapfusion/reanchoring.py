@@ -34,6 +34,7 @@ class Reanchoring:
     track: Track
     counters: Counters
     alignment: Alignment | None
+    _smoother: Smoother | None
     relocalised_at: list[tuple[float, float]]
     _association: MapAssociation
     _gate: GpsGate
@@ -51,23 +52,19 @@ class Reanchoring:
         self.relocalised_at = []  # (time, distance searched) of each map re-localisation
         self._checked_fix_t = math.nan  # the last fix whose silence started a search
 
-    @property
-    def initialised(self) -> bool:  # (MapFusion's)
-        raise NotImplementedError
-
-    @property
-    def _sm(self) -> Smoother:
-        raise NotImplementedError
-
-    @property
-    def _aligned(self) -> Alignment:
-        raise NotImplementedError
+    def _restart_from(self, k: int, pose: gtsam.Pose3, noise, sigma_m: float) -> None:
+        """The smoother afresh at frame k (a prior on ``pose``), the estimate's σ set, the road association
+        forgotten: the path every re-anchoring takes (GPS's and the map's)."""
+        assert self._smoother is not None
+        self._smoother.restart_from(k, pose, noise, self._step)
+        self._pos_sigma = self._lat_sigma = sigma_m
+        self._association.reset()
 
     def start_in_region(self, lat: float, lon: float, radius_m: float) -> None:
         """Cold start without GPS (issue 17): the vehicle starts somewhere on the roads within ``radius_m`` of
         (lat, lon); the odometry's shape finds it, and the estimate begins once found. The odometry must be
         metric (a stereo VO, a VIO): its scale is taken as 1."""
-        if self.initialised or self.track.t:
+        if self.alignment is not None or self.track.t:
             raise EngineError("start_in_region must be called before the first odometry frame")
         if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(radius_m) and radius_m > 0):
             raise EngineError(f"start region needs a finite latitude, longitude and radius > 0, got {lat}, {lon}, "
@@ -78,7 +75,7 @@ class Reanchoring:
     @property
     def searching_from_region(self) -> bool:
         """A cold start's search is running (no estimate yet)."""
-        return not self.initialised and self._search.active is not None
+        return self.alignment is None and self._search.active is not None
 
     def _gps_went_silent(self, k: int) -> bool:
         """True once per GPS outage: the last fix is ``reloc_after_gps_s`` old (the estimate is where GPS left
@@ -132,15 +129,15 @@ class Reanchoring:
         if search.active is None:
             return
         x, y, yaw = planar_of(self.track.raw[k])
-        loc = search.feed(x * self._aligned.scale, y * self._aligned.scale, yaw)
+        assert self.alignment is not None
+        scale = self.alignment.scale
+        loc = search.feed(x * scale, y * scale, yaw)
         if loc is None or math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
             return
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
-        sigmas = factors.pose_sigmas(StateModel.planar, max(loc.yaw_spread_rad, math.radians(2.0)),
-                                     max(loc.spread_m, 2.0))
-        self._sm.restart_from(k, pose, factors.diagonal(sigmas), self._step)
-        self._pos_sigma = self._lat_sigma = max(loc.spread_m, 2.0)
-        self._association.reset()
+        sigma_m = max(loc.spread_m, 2.0)
+        sigmas = factors.pose_sigmas(StateModel.planar, max(loc.yaw_spread_rad, math.radians(2.0)), sigma_m)
+        self._restart_from(k, pose, factors.diagonal(sigmas), sigma_m)
         self.counters.map_relocalisations += 1
         self.relocalised_at.append((self.track.t[k], loc.driven_m))
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
@@ -150,8 +147,6 @@ class Reanchoring:
     def _relocalise(self, sigma: float) -> None:  # from GPS, as at the start: a fresh smoother at the gate's pose
         r = self._gate.relocalisation(self.track, sigma)
         noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, r.yaw_sigma_rad, sigma))
-        self._sm.restart_from(r.k, r.pose, noise, self._step)
-        self._pos_sigma = self._lat_sigma = sigma
-        self._association.reset()
+        self._restart_from(r.k, r.pose, noise, sigma)
         self._update()
 
