@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import FusionConfig
+from .geometry import wrap_angle
 from .roadmap import RoadMap
 
 log = logging.getLogger(__name__)
@@ -66,10 +67,6 @@ class Located:
     spread_m: float  # RMS distance of that mass from the pose
     yaw_spread_rad: float  # circular σ of its offsets
     driven_m: float  # odometry distance since the filter started
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
 class RoadParticles:
@@ -113,7 +110,7 @@ class RoadParticles:
         self.direction = d
         self.along = road.s_m[pick].astype(np.float64)
         yaw = self._heading(self.edge, self.along, d)
-        self.offset = _wrap(yaw - odometry_yaw_rad + self.rng.normal(0.0, math.radians(2.0), n))
+        self.offset = wrap_angle(yaw - odometry_yaw_rad + self.rng.normal(0.0, math.radians(2.0), n))
         self.logw = np.full(n, -math.log(n))
         self.driven_m = 0.0
         return int(near.size)
@@ -124,18 +121,22 @@ class RoadParticles:
         edge = self.edge if edge is None else edge
         along = self.along if along is None else along
         road = self.road
-        g = self._base[edge] + along
-        i = np.clip(np.searchsorted(self._glob, g, side="right") - 1, road.edge_start[edge], road.edge_end[edge] - 1)
+        g, i = self._waypoint(edge, along)
         j = np.minimum(i + 1, road.edge_end[edge] - 1)
         span = self._glob[j] - self._glob[i]
         f = np.where(span > 0, (g - self._glob[i]) / np.where(span > 0, span, 1.0), 0.0)[:, None]
         return road.xy_m[i] * (1.0 - f) + road.xy_m[j] * f
 
-    def _heading(self, edge: np.ndarray, along: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    def _waypoint(self, edge: np.ndarray, along: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The global arc length of (edge, along) pairs and the way-point at or before each, on its own edge."""
         road = self.road
         g = self._base[edge] + along
         i = np.clip(np.searchsorted(self._glob, g, side="right") - 1, road.edge_start[edge], road.edge_end[edge] - 1)
-        return road.yaw_rad[i] + np.where(direction < 0, math.pi, 0.0)
+        return g, i
+
+    def _heading(self, edge: np.ndarray, along: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        _, i = self._waypoint(edge, along)
+        return self.road.yaw_rad[i] + np.where(direction < 0, math.pi, 0.0)
 
     def _drive(self, distance: np.ndarray, target: np.ndarray, sigma_m: float) -> None:
         """Each particle drives its own distance along the graph. At a vertex it takes a legal exit drawn
@@ -197,17 +198,17 @@ class RoadParticles:
         noise = 1.0 + rng.normal(0.0, cfg.reloc_scale_sigma, n)
         self._drive(np.maximum(moved_m * noise + rng.normal(0.0, cfg.reloc_along_sigma_m, n), 0.0), before + expected,
                     sigma)
-        after = self.positions()
-        ex = after[:, 0] - before[:, 0] - expected[:, 0]
-        ey = after[:, 1] - before[:, 1] - expected[:, 1]
+        moved = self.positions() - before  # each particle's displacement on the road
+        ex = moved[:, 0] - expected[:, 0]
+        ey = moved[:, 1] - expected[:, 1]
         self.logw += -0.5 * (ex * ex + ey * ey) / (sigma * sigma)
         chord = math.hypot(ox, oy)
         if chord > 1.0:  # the offset follows the odometry's heading drift
-            road_dir = np.arctan2(after[:, 1] - before[:, 1], after[:, 0] - before[:, 0])
-            innov = _wrap(road_dir - math.atan2(oy, ox) - self.offset)
-            moved_on_road = np.hypot(after[:, 0] - before[:, 0], after[:, 1] - before[:, 1]) > 0.5 * chord
-            self.offset = _wrap(self.offset + np.where(moved_on_road, cfg.reloc_offset_gain * innov, 0.0))
-        self.offset = _wrap(self.offset + rng.normal(0.0, math.radians(cfg.reloc_offset_sigma_deg), n))
+            road_dir = np.arctan2(moved[:, 1], moved[:, 0])
+            innov = wrap_angle(road_dir - math.atan2(oy, ox) - self.offset)
+            moved_on_road = np.hypot(moved[:, 0], moved[:, 1]) > 0.5 * chord
+            self.offset = wrap_angle(self.offset + np.where(moved_on_road, cfg.reloc_offset_gain * innov, 0.0))
+        self.offset = wrap_angle(self.offset + rng.normal(0.0, math.radians(cfg.reloc_offset_sigma_deg), n))
         self.logw -= _logsumexp(self.logw)
         self.driven_m += moved_m
         if 1.0 / float(np.sum(np.exp(2.0 * self.logw))) < 0.5 * n:
