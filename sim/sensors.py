@@ -17,6 +17,7 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation
 
 from mapfusion.config import param
+from mapfusion.geometry import cumulative_length
 
 from .scenario import GpsConfig, GpsMode, ImuParams, OdometryKind, Scenario, Vehicle, WeatherKind
 
@@ -559,18 +560,16 @@ def apply_kidnap(cfg, truth: Truth, odo: OdometryOutput, gps: GpsOutput, rng: np
     if kind == "none":
         return odo, gps, None
     bearing = float(rng.uniform(-math.pi, math.pi))
+    driven = cumulative_length(np.column_stack([truth.x_m, truth.y_m]))
+    last_fix = int(min(np.searchsorted(truth.t_s, gps.t_s[-1]), len(truth) - 1)) if len(gps.t_s) else 0
     if kind == "gps_bias":
         d = float(rng.uniform(cfg.bias_min_m, cfg.bias_max_m))
         moved = dataclasses.replace(gps, x_m=gps.x_m + d * math.cos(bearing), y_m=gps.y_m + d * math.sin(bearing))
         # the estimate is knocked off where the biased fixes end (while they come it is where they say)
         t_end = float(gps.t_s[-1]) if len(gps.t_s) else float(truth.t_s[0])
-        k = int(min(np.searchsorted(truth.t_s, t_end), len(truth) - 1))
-        driven = float(np.sum(np.hypot(np.diff(truth.x_m[:k + 1]), np.diff(truth.y_m[:k + 1]))))
-        return odo, moved, Kidnap(kind, t_end, driven, d, bearing)
+        return odo, moved, Kidnap(kind, t_end, float(driven[last_fix]), d, bearing)
     d = float(rng.uniform(cfg.jump_min_m, cfg.jump_max_m))
     heading = math.radians(float(rng.uniform(-cfg.heading_max_deg, cfg.heading_max_deg)))
-    driven = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(truth.x_m), np.diff(truth.y_m)))))
-    last_fix = int(min(np.searchsorted(truth.t_s, gps.t_s[-1]), len(truth) - 1)) if len(gps.t_s) else 0
     at_m = driven[last_fix] + float(rng.uniform(cfg.at_min_m, cfg.at_max_m))
     if at_m > driven[-1]:
         return odo, gps, None  # the drive ends first

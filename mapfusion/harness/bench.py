@@ -273,12 +273,11 @@ def bench_relocalise(road: RoadMap, radius_m: float = 2000.0, length_m: float = 
     around its start: its cost against the drive's own duration (``realtime_factor`` > 1: it keeps up, on
     one core)."""
     from mapfusion.config import FusionConfig
+    from mapfusion.geometry import resample
     from mapfusion.relocalise import Region, Relocaliser
 
-    xy = route_walk(road, length_m, seed)
-    s = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))))
-    u = np.arange(0.0, s[-1], speed_mps / rate_hz)
-    x, y = np.interp(u, s, xy[:, 0]), np.interp(u, s, xy[:, 1])
+    pts, _ = resample(route_walk(road, length_m, seed), speed_mps / rate_hz)  # (as bench_engine's drive)
+    x, y = pts[:, 0], pts[:, 1]
     yaw = np.arctan2(np.gradient(y), np.gradient(x))
     reloc = Relocaliser(road, FusionConfig(), Region(float(x[0]), float(y[0]), radius_m), seed)
     t0 = time.perf_counter()

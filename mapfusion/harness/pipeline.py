@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from mapfusion.formats import GpsFixes, write_tum
+from mapfusion.geometry import cumulative_length
 from mapfusion.metrics import (associate, ate, delocalized, match_rate, online_error, relocalisation_m, rpe_per_100m,
                                zone_rmse)
 from mapfusion.config import FusionConfig
@@ -56,7 +57,7 @@ def _kidnap_metrics(res: FusionResult, truth: Truth, kidnap) -> dict:
         return {"relocalised": None, "relocalisation_m": None}
     t, xyz, _, _ = _online_arrays(res)
     ia, ib = associate(t, truth.t_s)
-    driven = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(truth.x_m), np.diff(truth.y_m)))))
+    driven = cumulative_length(np.column_stack([truth.x_m, truth.y_m]))
     err = np.hypot(xyz[ia, 0] - truth.x_m[ib], xyz[ia, 1] - truth.y_m[ib])
     k = int(np.searchsorted(truth.t_s, kidnap.t_s - 1e-9))
     from_m = float(driven[min(k, len(driven) - 1)])

@@ -23,8 +23,7 @@ DRAWN = 4000
 @dataclass
 class Snapshot:
     driven_m: float
-    xy_m: np.ndarray  # (n, 2) drawn particles
-    weight: np.ndarray  # their weights (normalised over the drawn ones)
+    xy_m: np.ndarray  # (n, 2) particles drawn by weight
 
 
 def search_snapshots(road: RoadMap, cfg: FusionConfig, region: Region, odo_xy_yaw: np.ndarray,
@@ -42,7 +41,7 @@ def search_snapshots(road: RoadMap, cfg: FusionConfig, region: Region, odo_xy_ya
         if len(p) and (p.driven_m >= next_m or found is not None):
             w = np.exp(p.logw)
             pick = rng.choice(len(p), size=min(DRAWN, len(p)), p=w / w.sum())
-            shots.append(Snapshot(p.driven_m, p.positions()[pick], np.full(len(pick), 1.0 / len(pick))))
+            shots.append(Snapshot(p.driven_m, p.positions()[pick]))
             next_m = p.driven_m + every_m
         if found is not None:
             break
