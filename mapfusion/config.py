@@ -194,6 +194,13 @@ class StateModel(str, enum.Enum):
     pose3 = "pose3"  # the paper's free Pose3: z, roll and pitch left to the optimiser
 
 
+class PlanarSteps(str, enum.Enum):
+    """How the planar state takes each odometry step onto the ground plane."""
+
+    body = "body"  # the step in the previous body frame: its x, y and yaw (a tilted odometry frame cannot shrink it)
+    world = "world"  # the odometry frame's horizontal displacement, once levelled (before issue 17's tunnels)
+
+
 class PriorMode(str, enum.Enum):
     """Which directions the map prior constrains (DESIGN items 3 and 7)."""
 
@@ -384,6 +391,12 @@ class FusionConfig:
         StateModel.planar,
         "planar (level ground vehicle) or pose3 (the paper's free Pose3).",
         source="DESIGN item 7; chosen by measurement",
+    )
+    planar_steps: PlanarSteps = param(
+        PlanarSteps.body,
+        "planar state: each step from the body frame (body) or from the levelled odometry frame's horizontal "
+        "displacement (world).",
+        source="measured: a VO re-initialised after a long outage resumes in a frame pitched by tens of degrees",
     )
     prior_mode: PriorMode = param(
         PriorMode.along_free,

@@ -25,7 +25,7 @@ import numpy as np
 
 from . import factors
 from .association import MapAssociation
-from .config import FusionConfig
+from .config import FusionConfig, PlanarSteps
 from .counters import Counters
 from .errors import EngineError
 from .gps_gate import GpsGate, GpsQueue, Verdict
@@ -80,7 +80,7 @@ class MapFusion(Reanchoring):
         self.road = road
         self.cfg = config or FusionConfig()
         self.counters = Counters()
-        self.track = Track(self.cfg.state, 1.0 / odometry_rate_hz)
+        self.track = Track(self.cfg.state, 1.0 / odometry_rate_hz, flat=self.cfg.planar_steps is PlanarSteps.body)
         self.initialiser = Initialiser(self.cfg, gps_rate_hz, odometry_rate_hz)
         self.alignment: Alignment | None = None
         self.initialised_at: float | None = None
@@ -250,6 +250,7 @@ class MapFusion(Reanchoring):
         self._smoother = Smoother(self.cfg, self.track, self.counters, self._between,
                                   lambda: self._to_map(self.track.raw[0]))
         self._start_graph(anchor)
+        self._note_outage_in_batch()
 
     def _to_map(self, raw: gtsam.Pose3) -> gtsam.Pose3:
         return self.track.to_map(raw, self._aligned)
@@ -266,8 +267,7 @@ class MapFusion(Reanchoring):
                 self.alignment = self._motion.rescale(fit)
         batch = solve_initial_batch(self.cfg, self.track, self._aligned, self.initialiser.fixes,
                                     lambda k: self._between(k, before_init=True), self.counters, anchor)
-        sm = self._sm
-        last = len(self.track) - 1
+        sm, last = self._sm, len(self.track) - 1
         for k, pose in enumerate(batch.poses):
             self.track.online[k] = pose
             if k < last:
@@ -296,6 +296,7 @@ class MapFusion(Reanchoring):
         if prev is None:
             prev = self._to_map(track.raw[k - 1])
         pred = prev.compose(step)
+        self._note_outage(k, step)
         sm.insert(k, pred)
         prior_added = self._map_prior(k, pred, step) if self.cfg.use_map else False
         track.online[k] = pred

@@ -133,6 +133,16 @@ def between(k: int, step: gtsam.Pose3, noise: gtsam.noiseModel.Base) -> gtsam.Be
     return gtsam.BetweenFactorPose3(X(k - 1), X(k), step, noise)
 
 
+def outage_sigma_m(cfg: FusionConfig, step: gtsam.Pose3, gap_s: float) -> float:
+    """How far the estimate after an odometry outage may be from the truth (σ, m; 0 for an ordinary step):
+    the step across it is a re-initialised odometry's guess (``outage_step_fraction`` of its length), and the
+    vehicle may have moved ``reloc_gap_speed_mps`` × the gap in any direction."""
+    if gap_s <= cfg.outage_s:
+        return 0.0
+    tr = step.translation()
+    return max(cfg.outage_step_fraction * math.sqrt(tr.dot(tr)), cfg.reloc_gap_speed_mps * gap_s)
+
+
 def odometry_noise(cfg: FusionConfig, step: gtsam.Pose3, gap_frames: float, period_s: float, *,
                    before_init: bool = False, scale_sigma: float | None = None) -> gtsam.noiseModel.Base:
     """σ of one odometry step. A step across dropped frames is looser in proportion to the frames

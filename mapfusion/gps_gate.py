@@ -70,6 +70,8 @@ class Relocalisation:
     k: int
     pose: gtsam.Pose3
     yaw_sigma_rad: float
+    since_k: int = -1  # after an outage: its first frame, which the correction reaches back to (else -1)
+    fixes: tuple[tuple[float, float, int], ...] = ()  # after an outage: the run's fixes (x, y, frame)
 
 
 class GpsGate:
@@ -78,17 +80,41 @@ class GpsGate:
     def __init__(self, cfg: FusionConfig) -> None:
         self.cfg = cfg
         self.run: list[tuple[float, float, float, int]] = []  # consecutive gated fixes (t, x, y, frame)
+        self.open_m = 0.0  # after an odometry outage: how far the estimate may be off (σ, m), until the next fix
+        self.open_k = -1  # the outage's first frame (while open)
+
+    def open(self, sigma_m: float, k: int) -> None:
+        """The odometry lost track (an outage longer than ``reloc_gap_s``): the estimate may be ``sigma_m``
+        off, so the next fix within the widened gate re-anchors it rather than being rejected."""
+        self.open_m = max(self.open_m, sigma_m)
+        self.open_k = k if self.open_k < 0 else self.open_k
+        self.run = []  # fixes from before the outage say nothing of where the odometry resumed
 
     def check(self, track: Track, k: int, x: float, y: float, sigma: float, pos_sigma: float) -> Verdict:
         """The verdict on a fix at frame k (ENU metres, σ per axis)."""
         cfg = self.cfg
         pred = track.online[k] or track.online[-1]
         assert pred is not None  # fixes are gated only after initialisation
-        spread = math.sqrt(sigma * sigma + pos_sigma * pos_sigma + cfg.gps_gate_floor_m**2)
-        if math.hypot(pred.x() - x, pred.y() - y) <= cfg.gps_gate_sigma * spread:
-            self.run.clear()
-            return Verdict.accept
+        # after an outage the estimate's own σ is the guess's (large, from a solve far from the truth): only a
+        # fix near it is a factor, the rest re-anchor. (A fix from before the outage, handed out late, is not.)
+        opened = self.open_m > 0.0 and k >= self.open_k
+        spread = math.sqrt(sigma * sigma + (0.0 if opened else pos_sigma) ** 2 + cfg.gps_gate_floor_m**2)
+        dist = math.hypot(pred.x() - x, pred.y() - y)
         t = track.t[k]
+        if dist <= cfg.gps_gate_sigma * spread:
+            self.run.clear()
+            if opened:
+                self.open_m, self.open_k = 0.0, -1
+            return Verdict.accept
+        if k < self.open_k:
+            return Verdict.reject
+        if opened and dist <= cfg.gps_gate_sigma * math.hypot(spread, self.open_m):
+            # after an outage two fixes that agree place the estimate anew (their chord gives the heading)
+            self.run = [r for r in self.run if t - r[0] <= cfg.relocalise_window_s] + [(t, x, y, k)]
+            if len(self.run) >= 2 and self._consistent(track, sigma):
+                self.open_m = 0.0
+                return Verdict.relocalise  # (open_k stays for the relocalisation to read)
+            return Verdict.reject
         # the run is broken by any accepted fix; with GPS every 5 s, three fixes span 10 s
         self.run = [r for r in self.run if t - r[0] <= cfg.relocalise_window_s] + [(t, x, y, k)]
         if len(self.run) >= cfg.relocalise_after_fixes and self._consistent(track, sigma):
@@ -135,5 +161,8 @@ class GpsGate:
             anchor = level(anchor)
         # a 3σ error at either end of the run's chord, plus a floor
         yaw_sigma = math.atan2(3.0 * sigma, max(length, 1.0)) + math.radians(cfg.relocalise_yaw_sigma_floor_deg)
-        self.run = []
-        return Relocalisation(kn, anchor, yaw_sigma)
+        since_k, fixes = self.open_k, tuple((x, y, k) for _, x, y, k in self.run)
+        self.run, self.open_k = [], -1
+        if since_k < 0:
+            return Relocalisation(kn, anchor, yaw_sigma)
+        return Relocalisation(kn, anchor, yaw_sigma, since_k, fixes)

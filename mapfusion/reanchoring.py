@@ -18,6 +18,7 @@ from .counters import Counters
 from .errors import EngineError
 from .gps_gate import GpsGate
 from .initialisation import Initialiser
+from .metrics import umeyama
 from .relocalise import Located, Region, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
@@ -144,9 +145,45 @@ class Reanchoring:
                  math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
         self._update()
 
-    def _relocalise(self, sigma: float) -> None:  # from GPS, as at the start: a fresh smoother at the gate's pose
+    def _note_outage(self, k: int, step: gtsam.Pose3) -> None:
+        """An odometry outage longer than ``reloc_gap_s`` into frame k: where the odometry resumed is a guess,
+        so the GPS gate opens for fixes that place it anew (:meth:`GpsGate.open`)."""
+        gap_s = self.track.t[k] - self.track.t[k - 1]
+        if gap_s > self.cfg.reloc_gap_s:
+            self._gate.open(factors.outage_sigma_m(self.cfg, step, gap_s), k)
+
+    def _note_outage_in_batch(self) -> None:
+        """The initialisation's frames hold an outage: the batch gated the fixes after it against the
+        odometry's guess, so the gate opens as after an outage (the next fix near the estimate closes it)."""
+        t = self.track.t
+        for k in range(len(self.track) - 1, max(self.track.first, 0), -1):
+            if t[k] - t[k - 1] > self.cfg.reloc_gap_s:
+                self._note_outage(k, self._step(k))
+                return
+
+    def _relocalise(self, sigma: float) -> None:
+        """From GPS, as at the start: a fresh smoother at the gate's pose. After an odometry outage the
+        correction reaches back to the outage: the odometry since is placed on the run's fixes (a rigid fit)
+        and those fixes are added, so the estimate between the outage and the re-anchoring is mended too."""
         r = self._gate.relocalisation(self.track, sigma)
-        noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, r.yaw_sigma_rad, sigma))
-        self._restart_from(r.k, r.pose, noise, sigma)
+        k, pose, yaw_sigma = r.k, r.pose, r.yaw_sigma_rad
+        if 0 <= r.since_k < r.k and len(r.fixes) >= 2:
+            k, pose, sigma = r.since_k, *self._placed_on(r.since_k, r.fixes, sigma, yaw_sigma)
+        noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, yaw_sigma, sigma))
+        self._restart_from(k, pose, noise, sigma)
+        assert self._smoother is not None
+        for x, y, kf in r.fixes if k == r.since_k else ():
+            self._smoother.add(factors.gps_factor(self.cfg.state, kf, x, y, None, sigma))
         self._update()
 
+    def _placed_on(self, k0: int, fixes, sigma: float, yaw_sigma: float) -> tuple[gtsam.Pose3, float]:
+        """Frame k0's pose that puts the odometry from k0 onto ``fixes`` ((x, y, frame), ≥ 2) by a rigid fit,
+        and its positional σ (the fixes' and the heading's lever arm over the distance to them)."""
+        chain, pose = {k0: gtsam.Pose3()}, gtsam.Pose3()
+        for j in range(k0 + 1, max(kf for _, _, kf in fixes) + 1):
+            pose = chain[j] = pose.compose(self._step(j))
+        odo = np.array([[chain[kf].x(), chain[kf].y()] for _, _, kf in fixes])
+        rot, trans, _ = umeyama(odo, np.array([[x, y] for x, y, _ in fixes]))
+        lever_m = float(np.max(np.hypot(odo[:, 0], odo[:, 1])))
+        placed = gtsam.Pose3(gtsam.Rot3.Yaw(math.atan2(rot[1, 0], rot[0, 0])), gtsam.Point3(trans[0], trans[1], 0.0))
+        return placed, math.hypot(sigma, yaw_sigma * lever_m)

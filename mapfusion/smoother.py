@@ -105,8 +105,13 @@ class Smoother:
 
     def restart_from(self, k0: int, pose: gtsam.Pose3, noise, step_for: Callable[[int], gtsam.Pose3]) -> None:
         """Start afresh at frame ``k0`` (a prior on ``pose`` with ``noise``; the frames before keep their
-        causal estimates as final) and re-add the frames since, each by its step (a re-localisation)."""
+        causal estimates as final) and re-add the frames since, each by its step (a re-localisation). Frames
+        from k0 on that were already final (a correction reaching back into the initialisation's batch) are
+        estimated afresh."""
         self.finalise_upto(k0 - 1)
+        for k in range(k0, self.smoothed_upto + 1):
+            self.smoothed.pop(k, None)
+        self.smoothed_upto = min(self.smoothed_upto, k0 - 1)
         self.restart()
         self.add(factors.pose_prior(k0, pose, noise))
         self.insert(k0, pose)

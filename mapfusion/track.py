@@ -37,6 +37,14 @@ def planar_of(pose: gtsam.Pose3) -> tuple[float, float, float]:
     return x, y, pose.rotation().yaw()
 
 
+def flatten(rel: gtsam.Pose3) -> gtsam.Pose3:
+    """A relative motion in the moving body's frame reduced to the ground plane: its x, y and yaw. Chained,
+    such steps are immune to the odometry frame's own tilt (a VO that re-initialises after an outage may
+    resume in a frame pitched by tens of degrees, and its horizontal displacements shrink by the cosine)."""
+    t = rel.translation()
+    return gtsam.Pose3(gtsam.Rot3.Yaw(rel.rotation().yaw()), gtsam.Point3(float(t[0]), float(t[1]), 0.0))
+
+
 def planar_step(prev: tuple[float, float, float], cur: tuple[float, float, float], scale: float = 1.0) -> gtsam.Pose3:
     """Relative motion between two odometry poses given as (x, y, yaw) (:func:`planar_of`), projected on
     the horizontal plane with the odometry's own attitude: the world displacement rotated by the
@@ -111,8 +119,10 @@ class History(Generic[T]):
 class Track:
     """Odometry frames in time order, and their causal estimates (None before initialisation)."""
 
-    def __init__(self, state: StateModel, nominal_period_s: float) -> None:
+    def __init__(self, state: StateModel, nominal_period_s: float, flat: bool = False) -> None:
         self.state = state
+        # planar state, steps taken in the body frame: the raw chain is composed of each step's x, y and yaw
+        self.flat = flat and state is StateModel.planar
         self.nominal_period_s = nominal_period_s
         self.t: History[float] = History()
         self.raw: History[gtsam.Pose3] = History()  # raw absolute odometry poses (levelled once level is set)
@@ -128,6 +138,8 @@ class Track:
     def append(self, t: float, rel: gtsam.Pose3) -> np.ndarray:
         """A new frame from its relative motion; returns its raw (unlevelled) position."""
         first = not self.t
+        if self.flat:
+            rel = flatten(rel)
         self._odo_abs = self._odo_abs if first else self._odo_abs.compose(rel)
         self.t.append(t)
         self.raw.append(self.level_rot.compose(self._odo_abs) if self.level_rot is not None else self._odo_abs)
@@ -142,7 +154,7 @@ class Track:
             return None
         k0 = min(steps)
         for k, rel in steps.items():
-            self.rel[k] = rel
+            self.rel[k] = flatten(rel) if self.flat else rel
         for k in range(max(k0, self.first + 1), len(self)):
             self.raw[k] = self.raw[k - 1].compose(self.rel[k])
         unlevel = self.level_rot.inverse() if self.level_rot is not None else gtsam.Pose3()

@@ -74,3 +74,42 @@ def test_the_engine_bridges_a_10000_km_spike_and_counts_it(tmp_path):
     _, online = eng.online_estimates()
     err = [abs(p.x() - x[k]) for k, p in enumerate(online) if p is not None]
     assert max(err) < 10.0  # followed, the spike would be 1e7 m
+
+
+def _tilted(d_m: float, yaw_rad: float, pitch_rad: float, roll_rad: float) -> gtsam.Pose3:
+    """A body-frame step forward, turned by yaw, carrying a pitch and roll increment (a VO's attitude noise)."""
+    return gtsam.Pose3(gtsam.Rot3.Ypr(yaw_rad, pitch_rad, roll_rad), gtsam.Point3(d_m, 0.0, 0.0))
+
+
+@given(steps=st.lists(st.tuples(st.floats(0.0, 3.0), st.floats(-0.2, 0.2), st.floats(-0.05, 0.05),
+                                st.floats(-0.05, 0.05)), min_size=2, max_size=120))
+def test_planar_steps_from_the_body_frame_ignore_the_odometry_frames_tilt(steps):
+    """Attitude increments that tilt the odometry's world frame (a VO re-initialised in a pitched frame) do not
+    shorten or turn the planar steps taken from the body frame: each is the step's own forward distance and yaw
+    (in the world projection a frame pitched by θ shortens every step by cos θ)."""
+    from mapfusion.config import StateModel
+    from mapfusion.track import Track
+
+    track = Track(StateModel.planar, 0.1, flat=True)
+    for k, (d, yaw, pitch, roll) in enumerate(steps):
+        track.append(0.1 * k, _tilted(d, yaw, pitch, roll))
+    for k, (d, yaw, _, _) in enumerate(steps[1:], start=1):
+        s = track.step(k, 2.0)
+        assert math.isclose(s.x(), 2.0 * d, abs_tol=1e-9) and abs(s.y()) < 1e-9
+        assert math.isclose(s.rotation().yaw(), gtsam.Rot3.Ypr(yaw, 0.0, 0.0).yaw(), abs_tol=1e-9)
+
+
+def test_a_frame_pitched_by_60_degrees_shrinks_world_steps_but_not_body_steps():
+    """The failure the body steps mend, shown: the same steps after the odometry frame pitched by 60°."""
+    from mapfusion.config import StateModel
+    from mapfusion.track import Track
+
+    pitched = [gtsam.Pose3(gtsam.Rot3.Ypr(0.0, math.radians(60.0), 0.0), gtsam.Point3(0.0, 0.0, 0.0))] + \
+        [_tilted(1.0, 0.0, 0.0, 0.0)] * 10
+    got = {}
+    for flat in (False, True):
+        track = Track(StateModel.planar, 0.1, flat=flat)
+        for k, rel in enumerate([gtsam.Pose3()] + pitched):
+            track.append(0.1 * k, rel)
+        got[flat] = track.step(5, 1.0).x()
+    assert math.isclose(got[False], 0.5, abs_tol=1e-9) and math.isclose(got[True], 1.0, abs_tol=1e-9)
