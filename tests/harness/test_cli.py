@@ -318,8 +318,8 @@ def test_plot_bad_input(tmp_path):
 
 
 @pytest.mark.sumo
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-23 (vo fitted to the real stereo VO, issue 22): the demo drive "
-                   "(seed 7) is lost with and without the map, ATE 82.1 → 84.5 m (online RMSE 143.2 → 98.7 m): the map "
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (planar steps from the body frame): the demo drive "
+                   "(seed 7) is lost with and without the map, ATE 78.1 → 83.3 m (online RMSE 141.3 → 97.8 m): the map "
                    "holds it for 1.9 km, then follows a wrong road (issues 16, 17); before the fit 17.70 → 9.30 m")
 def test_demo_runs_and_map_fusion_helps(tmp_path):
     r = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo")])
