@@ -620,15 +620,18 @@ class FusionConfig:
     reloc_give_up_m: float = param(1500.0, "A search not converged after this much driving starts again around the "
                                    "estimate with twice the radius.", unit="m", min=10.0, max=1000000.0,
                                    source="issue 17")
-    reloc_gap_s: float = param(3.0, "An odometry gap longer than this (the VO lost track and re-initialised) starts "
-                               "a search around the estimate before it.", unit="s", min=0.0, exclusive_min=True,
+    reloc_gap_s: float = param(3.0, "An odometry gap longer than this (the VO lost track and re-initialised) opens "
+                               "the GPS gate (two agreeing fixes re-anchor, back to the gap) and, with "
+                               "map_relocalisation, starts a search around the estimate before it.", unit="s",
+                               min=0.0, exclusive_min=True,
                                max=86400.0, source="issue 17: a VO re-initialises with a pose jump")
     reloc_gap_margin_m: float = param(100.0, "Radius of the search after an odometry gap beyond the distance the "
                                       "vehicle may have driven through it (the estimate before the gap was good to "
                                       "about this).", unit="m", min=0.0, max=100000.0,
                                       source="issue 17: a smaller region holds fewer look-alike paths")
-    reloc_gap_speed_mps: float = param(15.0, "Speed assumed through such a gap: the region's radius is "
-                                       "reloc_gap_margin_m + this × the gap.",
+    reloc_gap_speed_mps: float = param(15.0, "Speed assumed through such a gap: the search region's radius is "
+                                       "reloc_gap_margin_m + this × the gap, and the opened GPS gate's σ at least "
+                                       "this × the gap.",
                                        unit="m/s", min=0.0, max=100.0, source="issue 17: city speeds")
     reloc_seed: int = param(0, "Seed of the re-localisation's random numbers (runs are reproducible).", min=0,
                             max=2**31 - 1, source="reproducibility")

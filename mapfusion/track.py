@@ -2,7 +2,10 @@
 relative motions, and each frame's causal estimate in the map frame.
 
 Raw poses are the odometry as given (unscaled), composed from the relative motions; once the
-planar state levels the odometry frame they are stored levelled. :class:`Alignment` (from the GPS
+planar state levels the odometry frame they are stored levelled. With ``flat`` (the planar state's
+default, ``planar_steps = "body"``) each relative motion is first reduced to its body-frame x, y and
+yaw (:func:`flatten`), so the raw chain is level by construction and no tilt of the odometry's own
+frame reaches it. :class:`Alignment` (from the GPS
 initialisation) takes a raw pose into the map frame.
 """
 
