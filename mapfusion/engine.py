@@ -25,7 +25,7 @@ import numpy as np
 
 from . import factors
 from .association import MapAssociation
-from .config import FusionConfig, PlanarSteps
+from .config import FusionConfig
 from .counters import Counters
 from .errors import EngineError
 from .gps_gate import GpsGate, GpsQueue, Verdict
@@ -35,7 +35,7 @@ from .roadmap import RoadMap
 from .smoother import Smoother
 from .stream import OnFinal, Release
 from .reanchoring import Reanchoring
-from .track import Alignment, JumpGuard, Track, planar_of
+from .track import Alignment, JumpGuard, planar_of, track_for
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ class MapFusion(Reanchoring):
         self.road = road
         self.cfg = config or FusionConfig()
         self.counters = Counters()
-        self.track = Track(self.cfg.state, 1.0 / odometry_rate_hz, flat=self.cfg.planar_steps is PlanarSteps.body)
+        self.track = track_for(self.cfg, odometry_rate_hz)
         self.initialiser = Initialiser(self.cfg, gps_rate_hz, odometry_rate_hz)
         self.alignment: Alignment | None = None
         self.initialised_at: float | None = None

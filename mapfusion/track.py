@@ -22,7 +22,7 @@ from typing import Generic, TypeVar
 import gtsam
 import numpy as np
 
-from .config import StateModel
+from .config import FusionConfig, PlanarSteps, StateModel
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -46,6 +46,69 @@ def flatten(rel: gtsam.Pose3) -> gtsam.Pose3:
     resume in a frame pitched by tens of degrees, and its horizontal displacements shrink by the cosine)."""
     t = rel.translation()
     return gtsam.Pose3(gtsam.Rot3.Yaw(rel.rotation().yaw()), gtsam.Point3(float(t[0]), float(t[1]), 0.0))
+
+
+def _levelling_rows(ux: float, uy: float, uz: float) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """The first two rows of the rotation taking the direction (ux, uy, uz) to +z about their common
+    perpendicular (Rodrigues; plain floats: this runs once a frame)."""
+    n = math.sqrt(ux * ux + uy * uy + uz * uz)
+    ux, uy, uz = ux / n, uy / n, uz / n
+    s2 = ux * ux + uy * uy  # |u × z|², the axis being (uy, -ux, 0)
+    if s2 < 1e-24:
+        return ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0)) if uz > 0 else ((1.0, 0.0, 0.0), (0.0, -1.0, 0.0))
+    f = (1.0 - uz) / s2
+    # I + K + K²·f with K the cross-product matrix of (uy, -ux, 0)
+    return ((1.0 - f * ux * ux, -f * ux * uy, -ux), (-f * ux * uy, 1.0 - f * uy * uy, -uy))
+
+
+class LocalLevel:
+    """Odometry steps projected on the odometry frame's *local* horizontal: the plane normal to the mean of
+    the body's up axis over the last ``window`` frames (roads are level on average). A frame that tilts —
+    slowly, as a VO's attitude drifts, or at once, as a VO re-initialised after an outage resumes in a
+    pitched frame (the window restarts after a gap over ``reset_after_s``) — is levelled again within the
+    window, while a level frame is left as it is (the body's own roll and pitch on the road, and a camera
+    mounted at a tilt, do not turn the heading as body-frame steps do)."""
+
+    def __init__(self, window: int, reset_after_s: float) -> None:
+        self.window, self.reset_after_s = max(1, int(window)), reset_after_s
+        self._ups: deque[tuple[float, float, float]] = deque()
+        self._sum = [0.0, 0.0, 0.0]
+        self._pose: gtsam.Pose3 | None = None  # the 3-D chain of the relative motions
+        self._t = -math.inf
+
+    def step(self, t: float, rel: gtsam.Pose3) -> gtsam.Pose3:
+        """The planar step (x, y, yaw in the previous pose's levelled frame) into the frame at ``t``."""
+        prev = self._pose if self._pose is not None else gtsam.Pose3()
+        cur = prev.compose(rel) if self._pose is not None else gtsam.Pose3()
+        if t - self._t > self.reset_after_s:
+            self._ups.clear()
+            self._sum = [0.0, 0.0, 0.0]
+        self._pose, self._t = cur, t
+        r1 = cur.rotation().matrix()
+        up = (float(r1[0, 2]), float(r1[1, 2]), float(r1[2, 2]))
+        self._ups.append(up)
+        sm = self._sum
+        sm[0] += up[0]
+        sm[1] += up[1]
+        sm[2] += up[2]
+        if len(self._ups) > self.window:
+            old = self._ups.popleft()
+            sm[0] -= old[0]
+            sm[1] -= old[1]
+            sm[2] -= old[2]
+        a, b = _levelling_rows(sm[0], sm[1], sm[2])
+        r0 = prev.rotation().matrix()
+        p0, p1 = prev.translation(), cur.translation()
+
+        def dot(row, v0: float, v1: float, v2: float) -> float:
+            return row[0] * v0 + row[1] * v1 + row[2] * v2
+
+        yaw0 = math.atan2(dot(b, r0[0, 0], r0[1, 0], r0[2, 0]), dot(a, r0[0, 0], r0[1, 0], r0[2, 0]))
+        yaw1 = math.atan2(dot(b, r1[0, 0], r1[1, 0], r1[2, 0]), dot(a, r1[0, 0], r1[1, 0], r1[2, 0]))
+        d = (float(p1[0] - p0[0]), float(p1[1] - p0[1]), float(p1[2] - p0[2]))
+        dx, dy = dot(a, *d), dot(b, *d)
+        c, s = math.cos(yaw0), math.sin(yaw0)
+        return gtsam.Pose3(gtsam.Rot3.Yaw(yaw1 - yaw0), gtsam.Point3(c * dx + s * dy, -s * dx + c * dy, 0.0))
 
 
 def planar_step(prev: tuple[float, float, float], cur: tuple[float, float, float], scale: float = 1.0) -> gtsam.Pose3:
@@ -122,10 +185,13 @@ class History(Generic[T]):
 class Track:
     """Odometry frames in time order, and their causal estimates (None before initialisation)."""
 
-    def __init__(self, state: StateModel, nominal_period_s: float, flat: bool = False) -> None:
+    def __init__(self, state: StateModel, nominal_period_s: float, flat: bool = False,
+                 level: LocalLevel | None = None) -> None:
         self.state = state
-        # planar state, steps taken in the body frame: the raw chain is composed of each step's x, y and yaw
-        self.flat = flat and state is StateModel.planar
+        # planar state, steps taken in the body frame (flat) or on the local horizontal (level): the raw chain
+        # is composed of each step's x, y and yaw
+        self.level = level if state is StateModel.planar else None
+        self.flat = (flat or self.level is not None) and state is StateModel.planar
         self.nominal_period_s = nominal_period_s
         self.t: History[float] = History()
         self.raw: History[gtsam.Pose3] = History()  # raw absolute odometry poses (levelled once level is set)
@@ -141,7 +207,9 @@ class Track:
     def append(self, t: float, rel: gtsam.Pose3) -> np.ndarray:
         """A new frame from its relative motion; returns its raw (unlevelled) position."""
         first = not self.t
-        if self.flat:
+        if self.level is not None:
+            rel = self.level.step(t, rel)
+        elif self.flat:
             rel = flatten(rel)
         self._odo_abs = self._odo_abs if first else self._odo_abs.compose(rel)
         self.t.append(t)
@@ -239,6 +307,13 @@ class Track:
         rel = self.rel[k]
         t = rel.translation() * scale
         return gtsam.Pose3(rel.rotation(), gtsam.Point3(*t))
+
+
+def track_for(cfg: FusionConfig, odometry_rate_hz: float) -> Track:
+    """The engine's track for a configuration: its state model and how planar steps are taken."""
+    level = LocalLevel(cfg.level_window_s * odometry_rate_hz, cfg.outage_s) \
+        if cfg.planar_steps is PlanarSteps.level else None
+    return Track(cfg.state, 1.0 / odometry_rate_hz, flat=cfg.planar_steps is PlanarSteps.body, level=level)
 
 
 class JumpGuard:

@@ -318,9 +318,6 @@ def test_plot_bad_input(tmp_path):
 
 
 @pytest.mark.sumo
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (planar steps from the body frame): the demo drive "
-                   "(seed 7) is lost with and without the map, ATE 78.1 → 83.3 m (online RMSE 141.3 → 97.8 m): the map "
-                   "holds it for 1.9 km, then follows a wrong road (issues 16, 17); before the fit 17.70 → 9.30 m")
 def test_demo_runs_and_map_fusion_helps(tmp_path):
     r = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo")])
     assert r.exit_code == 0, r.output
