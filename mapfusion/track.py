@@ -311,7 +311,7 @@ class Track:
 
 def track_for(cfg: FusionConfig, odometry_rate_hz: float) -> Track:
     """The engine's track for a configuration: its state model and how planar steps are taken."""
-    level = LocalLevel(cfg.level_window_s * odometry_rate_hz, cfg.outage_s) \
+    level = LocalLevel(round(cfg.level_window_s * odometry_rate_hz), cfg.outage_s) \
         if cfg.planar_steps is PlanarSteps.level else None
     return Track(cfg.state, 1.0 / odometry_rate_hz, flat=cfg.planar_steps is PlanarSteps.body, level=level)
 
