@@ -74,17 +74,19 @@ class LocalLevel:
         self._ups: deque[tuple[float, float, float]] = deque()
         self._sum = [0.0, 0.0, 0.0]
         self._pose: gtsam.Pose3 | None = None  # the 3-D chain of the relative motions
+        self._rot = np.eye(3)  # its last rotation and position, kept for the next step
+        self._pos = np.zeros(3)
         self._t = -math.inf
 
     def step(self, t: float, rel: gtsam.Pose3) -> gtsam.Pose3:
         """The planar step (x, y, yaw in the previous pose's levelled frame) into the frame at ``t``."""
-        prev = self._pose if self._pose is not None else gtsam.Pose3()
-        cur = prev.compose(rel) if self._pose is not None else gtsam.Pose3()
+        cur = self._pose.compose(rel) if self._pose is not None else gtsam.Pose3()
         if t - self._t > self.reset_after_s:
             self._ups.clear()
             self._sum = [0.0, 0.0, 0.0]
-        self._pose, self._t = cur, t
-        r1 = cur.rotation().matrix()
+        r0, p0 = self._rot, self._pos
+        r1, p1 = cur.rotation().matrix(), cur.translation()
+        self._pose, self._rot, self._pos, self._t = cur, r1, p1, t
         up = (float(r1[0, 2]), float(r1[1, 2]), float(r1[2, 2]))
         self._ups.append(up)
         sm = self._sum
@@ -97,8 +99,6 @@ class LocalLevel:
             sm[1] -= old[1]
             sm[2] -= old[2]
         a, b = _levelling_rows(sm[0], sm[1], sm[2])
-        r0 = prev.rotation().matrix()
-        p0, p1 = prev.translation(), cur.translation()
 
         def dot(row, v0: float, v1: float, v2: float) -> float:
             return row[0] * v0 + row[1] * v1 + row[2] * v2
