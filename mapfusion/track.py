@@ -74,8 +74,8 @@ class LocalLevel:
         self._ups: deque[tuple[float, float, float]] = deque()
         self._sum = [0.0, 0.0, 0.0]
         self._pose: gtsam.Pose3 | None = None  # the 3-D chain of the relative motions
-        self._rot = np.eye(3)  # its last rotation and position, kept for the next step
-        self._pos = np.zeros(3)
+        self._fwd = (1.0, 0.0, 0.0)  # its last pose's forward axis and position, kept for the next step
+        self._pos = (0.0, 0.0, 0.0)
         self._t = -math.inf
 
     def step(self, t: float, rel: gtsam.Pose3) -> gtsam.Pose3:
@@ -84,10 +84,10 @@ class LocalLevel:
         if t - self._t > self.reset_after_s:
             self._ups.clear()
             self._sum = [0.0, 0.0, 0.0]
-        r0, p0 = self._rot, self._pos
-        r1, p1 = cur.rotation().matrix(), cur.translation()
-        self._pose, self._rot, self._pos, self._t = cur, r1, p1, t
-        up = (float(r1[0, 2]), float(r1[1, 2]), float(r1[2, 2]))
+        (m00, _, m02, m03), (m10, _, m12, m13), (m20, _, m22, m23), _ = cur.matrix().tolist()  # (plain floats: fast)
+        f0, p0 = self._fwd, self._pos
+        f1, p1, up = (m00, m10, m20), (m03, m13, m23), (m02, m12, m22)
+        self._pose, self._fwd, self._pos, self._t = cur, f1, p1, t
         self._ups.append(up)
         sm = self._sum
         sm[0] += up[0]
@@ -98,15 +98,11 @@ class LocalLevel:
             sm[0] -= old[0]
             sm[1] -= old[1]
             sm[2] -= old[2]
-        a, b = _levelling_rows(sm[0], sm[1], sm[2])
-
-        def dot(row, v0: float, v1: float, v2: float) -> float:
-            return row[0] * v0 + row[1] * v1 + row[2] * v2
-
-        yaw0 = math.atan2(dot(b, r0[0, 0], r0[1, 0], r0[2, 0]), dot(a, r0[0, 0], r0[1, 0], r0[2, 0]))
-        yaw1 = math.atan2(dot(b, r1[0, 0], r1[1, 0], r1[2, 0]), dot(a, r1[0, 0], r1[1, 0], r1[2, 0]))
-        d = (float(p1[0] - p0[0]), float(p1[1] - p0[1]), float(p1[2] - p0[2]))
-        dx, dy = dot(a, *d), dot(b, *d)
+        (a0, a1, a2), (b0, b1, b2) = _levelling_rows(sm[0], sm[1], sm[2])
+        yaw0 = math.atan2(b0 * f0[0] + b1 * f0[1] + b2 * f0[2], a0 * f0[0] + a1 * f0[1] + a2 * f0[2])
+        yaw1 = math.atan2(b0 * f1[0] + b1 * f1[1] + b2 * f1[2], a0 * f1[0] + a1 * f1[1] + a2 * f1[2])
+        d0, d1, d2 = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
+        dx, dy = a0 * d0 + a1 * d1 + a2 * d2, b0 * d0 + b1 * d1 + b2 * d2
         c, s = math.cos(yaw0), math.sin(yaw0)
         return gtsam.Pose3(gtsam.Rot3.Yaw(yaw1 - yaw0), gtsam.Point3(c * dx + s * dy, -s * dx + c * dy, 0.0))
 
