@@ -52,6 +52,8 @@ def _levelling_rows(ux: float, uy: float, uz: float) -> tuple[tuple[float, float
     """The first two rows of the rotation taking the direction (ux, uy, uz) to +z about their common
     perpendicular (Rodrigues; plain floats: this runs once a frame)."""
     n = math.sqrt(ux * ux + uy * uy + uz * uz)
+    if not n > 1e-12:  # (up axes that cancel: an odometry flipping over; leave the frame as it is)
+        return (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)
     ux, uy, uz = ux / n, uy / n, uz / n
     s2 = ux * ux + uy * uy  # |u × z|², the axis being (uy, -ux, 0)
     if s2 < 1e-24:

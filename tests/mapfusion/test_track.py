@@ -155,3 +155,17 @@ def test_local_level_keeps_a_level_frame_level_against_body_roll_and_pitch():
     # measured: 0.14° (the window's mean up is not quite vertical) against the body frame's 1.9°
     assert abs(yaw_level - heading) < math.radians(0.2), math.degrees(yaw_level - heading)
     assert abs(yaw_body - heading) > 10.0 * abs(yaw_level - heading)  # (the coupling the local level avoids)
+
+
+@given(up=st.tuples(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(-1.0, 1.0)).filter(
+    lambda u: math.hypot(*u) > 1e-3))
+def test_the_levelling_rotation_takes_the_mean_up_to_vertical(up):
+    """The first two rows of the levelling rotation are orthonormal and normal to ``up``: the levelled up is
+    vertical, whatever its direction (upside down included)."""
+    from mapfusion.track import _levelling_rows
+
+    a, b = np.array(_levelling_rows(*up))
+    u = np.array(up) / np.linalg.norm(up)
+    assert abs(a @ u) < 1e-9 and abs(b @ u) < 1e-9
+    assert abs(a @ a - 1.0) < 1e-9 and abs(b @ b - 1.0) < 1e-9 and abs(a @ b) < 1e-9
+    assert np.cross(a, b) @ u == pytest.approx(1.0, abs=1e-9)  # (a proper rotation: up goes to +z, not -z)
