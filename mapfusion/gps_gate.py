@@ -71,7 +71,7 @@ class Relocalisation:
     pose: gtsam.Pose3
     yaw_sigma_rad: float
     since_k: int = -1  # after an outage: its first frame, which the correction reaches back to (else -1)
-    fixes: tuple[tuple[float, float, int], ...] = ()  # after an outage: the run's fixes (x, y, frame)
+    fixes: tuple[tuple[float, float, int], ...] = ()  # the run's fixes (x, y, frame): added when since_k is set
 
 
 class GpsGate:
@@ -163,6 +163,4 @@ class GpsGate:
         yaw_sigma = math.atan2(3.0 * sigma, max(length, 1.0)) + math.radians(cfg.relocalise_yaw_sigma_floor_deg)
         since_k, fixes = self.open_k, tuple((x, y, k) for _, x, y, k in self.run)
         self.run, self.open_k = [], -1
-        if since_k < 0:
-            return Relocalisation(kn, anchor, yaw_sigma)
         return Relocalisation(kn, anchor, yaw_sigma, since_k, fixes)

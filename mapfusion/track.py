@@ -2,11 +2,10 @@
 relative motions, and each frame's causal estimate in the map frame.
 
 Raw poses are the odometry as given (unscaled), composed from the relative motions; once the
-planar state levels the odometry frame they are stored levelled. With ``flat`` (the planar state's
-default, ``planar_steps = "body"``) each relative motion is first reduced to its body-frame x, y and
-yaw (:func:`flatten`), so the raw chain is level by construction and no tilt of the odometry's own
-frame reaches it. :class:`Alignment` (from the GPS
-initialisation) takes a raw pose into the map frame.
+planar state levels the odometry frame they are stored levelled. With ``planar_steps = "level"`` (the
+default, :class:`LocalLevel`) or ``"body"`` (:func:`flatten`) each relative motion is first reduced to a
+planar step (x, y, yaw), so the raw chain is level by construction and no tilt of the odometry's own
+frame reaches it. :class:`Alignment` (from the GPS initialisation) takes a raw pose into the map frame.
 """
 
 from __future__ import annotations
@@ -104,9 +103,7 @@ class LocalLevel:
         yaw0 = math.atan2(b0 * f0[0] + b1 * f0[1] + b2 * f0[2], a0 * f0[0] + a1 * f0[1] + a2 * f0[2])
         yaw1 = math.atan2(b0 * f1[0] + b1 * f1[1] + b2 * f1[2], a0 * f1[0] + a1 * f1[1] + a2 * f1[2])
         d0, d1, d2 = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
-        dx, dy = a0 * d0 + a1 * d1 + a2 * d2, b0 * d0 + b1 * d1 + b2 * d2
-        c, s = math.cos(yaw0), math.sin(yaw0)
-        return gtsam.Pose3(gtsam.Rot3.Yaw(yaw1 - yaw0), gtsam.Point3(c * dx + s * dy, -s * dx + c * dy, 0.0))
+        return planar_step((0.0, 0.0, yaw0), (a0 * d0 + a1 * d1 + a2 * d2, b0 * d0 + b1 * d1 + b2 * d2, yaw1))
 
 
 def planar_step(prev: tuple[float, float, float], cur: tuple[float, float, float], scale: float = 1.0) -> gtsam.Pose3:
