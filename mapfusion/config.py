@@ -795,6 +795,13 @@ class FusionConfig:
         max=180.0,
         source="issue 6",
     )
+    gps_reach_back: bool = param(
+        True,
+        "A GPS re-localisation also mends the final estimates since the last fix taken: its correction spread "
+        "back in proportion to the distance driven (the compass rule), so a GPS-denied stretch is not left "
+        "drifted; false: only the estimate from the re-localisation on.",
+        source="issue 16 item 4 (rain-tunnel: the estimate drifted 50–135 m in GPS-denied zones)",
+    )
     relocalise_distance_tolerance: float = param(
         0.05,
         "A run of fixes agrees with the odometry when their distances "

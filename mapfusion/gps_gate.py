@@ -72,6 +72,7 @@ class Relocalisation:
     yaw_sigma_rad: float
     since_k: int = -1  # after an outage: its first frame, which the correction reaches back to (else -1)
     fixes: tuple[tuple[float, float, int], ...] = ()  # the run's fixes (x, y, frame): added when since_k is set
+    taken_k: int = -1  # the frame of the last fix the gate took before the run (-1: none)
 
 
 class GpsGate:
@@ -82,6 +83,7 @@ class GpsGate:
         self.run: list[tuple[float, float, float, int]] = []  # consecutive gated fixes (t, x, y, frame)
         self.open_m = 0.0  # after an odometry outage: how far the estimate may be off (σ, m), until the next fix
         self.open_k = -1  # the outage's first frame (while open)
+        self.taken_k = -1  # the frame of the last fix taken (the estimate was right there)
 
     def open(self, sigma_m: float, k: int) -> None:
         """The odometry lost track (an outage longer than ``reloc_gap_s``): the estimate may be ``sigma_m``
@@ -103,6 +105,7 @@ class GpsGate:
         t = track.t[k]
         if dist <= cfg.gps_gate_sigma * spread:
             self.run.clear()
+            self.taken_k = max(self.taken_k, k)
             if opened:
                 self.open_m, self.open_k = 0.0, -1
             return Verdict.accept
@@ -110,16 +113,23 @@ class GpsGate:
             return Verdict.reject
         if opened and dist <= cfg.gps_gate_sigma * math.hypot(spread, self.open_m):
             # after an outage two fixes that agree place the estimate anew (their chord gives the heading)
-            self.run = [r for r in self.run if t - r[0] <= cfg.relocalise_window_s] + [(t, x, y, k)]
-            if len(self.run) >= 2 and self._consistent(track, sigma):
+            if self._extend(track, t, x, y, k, sigma) >= 2:
                 self.open_m = 0.0
                 return Verdict.relocalise  # (open_k stays for the relocalisation to read)
             return Verdict.reject
         # the run is broken by any accepted fix; with GPS every 5 s, three fixes span 10 s
-        self.run = [r for r in self.run if t - r[0] <= cfg.relocalise_window_s] + [(t, x, y, k)]
-        if len(self.run) >= cfg.relocalise_after_fixes and self._consistent(track, sigma):
+        if self._extend(track, t, x, y, k, sigma) >= cfg.relocalise_after_fixes:
             return Verdict.relocalise
         return Verdict.reject
+
+    def _extend(self, track: Track, t: float, x: float, y: float, k: int, sigma: float) -> int:
+        """Add a gated fix to the run; the run is then its longest consistent tail within the window (a fix
+        that disagrees — one taken in an outage and attached to the frame after it, an outlier — leaves it
+        rather than blocking every later run); returns its length."""
+        self.run = [r for r in self.run if t - r[0] <= self.cfg.relocalise_window_s] + [(t, x, y, k)]
+        while len(self.run) >= 2 and not self._consistent(track, sigma):
+            self.run.pop(0)
+        return len(self.run)
 
     def _consistent(self, track: Track, sigma: float) -> bool:
         """The run's fixes move as far as the odometry says, each from the first fix. Lengths, not
@@ -163,4 +173,5 @@ class GpsGate:
         yaw_sigma = math.atan2(3.0 * sigma, max(length, 1.0)) + math.radians(cfg.relocalise_yaw_sigma_floor_deg)
         since_k, fixes = self.open_k, tuple((x, y, k) for _, x, y, k in self.run)
         self.run, self.open_k = [], -1
-        return Relocalisation(kn, anchor, yaw_sigma, since_k, fixes)
+        taken_k, self.taken_k = (self.taken_k if self.taken_k < k0 else -1), kn
+        return Relocalisation(kn, anchor, yaw_sigma, since_k, fixes, taken_k)

@@ -22,7 +22,7 @@ from .metrics import umeyama
 from .relocalise import Located, Region, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
-from .track import Alignment, Track, planar_of
+from .track import Alignment, Track, planar_of, spread_back
 
 log = logging.getLogger(__name__)
 
@@ -170,11 +170,30 @@ class Reanchoring:
         if 0 <= r.since_k < r.k and len(r.fixes) >= 2:
             k, pose, sigma = r.since_k, *self._placed_on(r.since_k, r.fixes, sigma, yaw_sigma)
         noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, yaw_sigma, sigma))
+        was = self.track.online[k]
         self._restart_from(k, pose, noise, sigma)
+        if self.cfg.gps_reach_back and k == r.k and was is not None:
+            self._spread_back(r.taken_k, k, was, pose)
         assert self._smoother is not None
         for x, y, kf in r.fixes if k == r.since_k else ():
             self._smoother.add(factors.gps_factor(self.cfg.state, kf, x, y, None, sigma))
         self._update()
+
+    def _spread_back(self, k0: int, k1: int, was: gtsam.Pose3, now: gtsam.Pose3) -> None:
+        """A GPS re-localisation moved frame k1 from ``was`` to ``now``; the estimate was right at frame k0 (the
+        last fix taken). The final estimates between are mended by :func:`~mapfusion.track.spread_back`, so the
+        stretch the fixes could not see — a tunnel, a GPS-denied zone — is corrected, not only its end (the
+        online estimates stay as they were: causal)."""
+        sm, track = self._smoother, self.track
+        assert sm is not None
+        if k0 < track.first or k0 >= k1 - 1 or sm.smoothed.get(k0) is None:
+            return
+        frames = [k for k in range(k0 + 1, k1) if sm.smoothed.get(k) is not None]
+        path = [p for p in [sm.smoothed[k0]] + [sm.smoothed[k] for k in frames] if p is not None]
+        for k, pose in zip(frames, spread_back(path, was, now)):
+            sm.smoothed[k] = pose
+        log.info("t=%.1f s: the GPS correction (%.0f m) spread back over %d frames", track.t[k1],
+                 math.hypot(now.x() - was.x(), now.y() - was.y()), len(frames))
 
     def _placed_on(self, k0: int, fixes, sigma: float, yaw_sigma: float) -> tuple[gtsam.Pose3, float]:
         """Frame k0's pose that puts the odometry from k0 onto ``fixes`` ((x, y, frame), ≥ 2) by a rigid fit,

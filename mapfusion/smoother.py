@@ -86,6 +86,7 @@ class Smoother:
         self.last_updated_pose: gtsam.Pose3 | None = None
         self.smoothed: dict[int, gtsam.Pose3 | None] = {}  # None: a frame that never had an estimate
         self.smoothed_upto = -1  # every frame up to this one has its final smoothed estimate
+        self.guess: dict[int, gtsam.Pose3] = {}  # a restart's estimates of past frames (until final)
 
     # -------------------------------------------------------------- building
     def add(self, factor: gtsam.NonlinearFactor) -> None:
@@ -101,6 +102,7 @@ class Smoother:
         """A fresh backend, nothing pending, no updated frame (a re-localisation follows)."""
         self.backend = _Backend(self.cfg)
         self.pending = Pending()
+        self.guess = {}
         self.last_updated_key, self.last_updated_pose = -1, None
 
     def restart_from(self, k0: int, pose: gtsam.Pose3, noise, step_for: Callable[[int], gtsam.Pose3]) -> None:
@@ -114,13 +116,17 @@ class Smoother:
         self.smoothed_upto = min(self.smoothed_upto, k0 - 1)
         self.restart()
         self.add(factors.pose_prior(k0, pose, noise))
-        self.insert(k0, pose)
-        self.track.online[k0] = pose
-        for k in range(k0 + 1, len(self.track)):
-            self.add(self._between_for(k))
-            pose = pose.compose(step_for(k))
+        online, last = self.track.online, len(self.track) - 1
+        for k in range(k0, last + 1):
+            if k > k0:
+                self.add(self._between_for(k))
+                pose = pose.compose(step_for(k))
             self.insert(k, pose)
-            self.track.online[k] = pose
+            # the frames before the last keep their causal estimate (the online error is causal); the guess
+            # stands in as final for those the fixed-lag smoother marginalises in its first update
+            self.guess[k] = pose
+            if k == last or online[k] is None:
+                online[k] = pose
 
     def finalise_upto(self, k: int) -> None:
         """Frames up to k keep their causal estimate as final where they have none yet."""
@@ -188,10 +194,11 @@ class Smoother:
         for k in range(self.smoothed_upto + 1, self.last_updated_key + 1):
             if t[k] >= horizon:
                 break
+            guess = self.guess.pop(k, None)
             try:
                 self.smoothed[k] = self.backend.pose(X(k))
             except (RuntimeError, IndexError):  # already marginalised
-                self.smoothed[k] = self.track.online[k]
+                self.smoothed[k] = guess if guess is not None else self.track.online[k]
             self.smoothed_upto = k
 
     def _reanchor(self, failed: Pending) -> None:

@@ -118,6 +118,22 @@ def planar_step(prev: tuple[float, float, float], cur: tuple[float, float, float
     return gtsam.Pose3(gtsam.Rot3.Yaw(yaw1 - yaw0), t)
 
 
+def spread_back(path: list[gtsam.Pose3], was: gtsam.Pose3, now: gtsam.Pose3) -> list[gtsam.Pose3]:
+    """The compass rule of traverse adjustment: ``path`` runs from a pose known to be right (its first) to
+    just before a pose that a correction moved from ``was`` to ``now``; each pose after the first is moved by
+    that correction's position and heading change times the fraction of the path's length driven to it (a
+    drift that grows with the distance driven is undone; the first pose stays). Returns those poses."""
+    xy = np.array([[p.x(), p.y()] for p in path] + [[was.x(), was.y()]])
+    driven = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))))
+    if driven[-1] <= 0.0:
+        return list(path[1:])
+    dx, dy = now.x() - was.x(), now.y() - was.y()
+    dyaw = math.remainder(now.rotation().yaw() - was.rotation().yaw(), 2.0 * math.pi)
+    return [gtsam.Pose3(gtsam.Rot3.Yaw(f * dyaw).compose(p.rotation()), gtsam.Point3(p.x() + f * dx, p.y() + f * dy,
+                                                                                       p.z()))
+            for p, f in zip(path[1:], (driven[1:-1] / driven[-1]).tolist())]
+
+
 @dataclass(frozen=True)
 class Alignment:
     """The odometry frame in the map frame: scale, then a rotation by ``rot_rad`` about z, then a

@@ -111,3 +111,75 @@ def test_a_vo_resuming_300_m_off_and_turned_is_placed_by_the_next_two_fixes_back
     traj = eng.trajectory()
     errs = [math.hypot(p.x() - x[round(t / 0.1)], p.y()) for t, p in traj.items() if t >= 0.1 * (at + 200) - 1e-9]
     assert len(errs) == 600 and max(errs) < 10.0, max(errs)
+
+
+@given(bad=st.tuples(st.floats(-300.0, 300.0), st.floats(-300.0, 300.0)).filter(lambda b: math.hypot(*b) > 40.0),
+       dx=st.floats(150.0, 300.0), opened=st.booleans())
+def test_a_run_drops_a_first_fix_that_disagrees_and_re_anchors_on_the_rest(bad, dx, opened):
+    """A far fix that disagrees with the later ones (taken in an outage and attached to the frame after it, or
+    an outlier) no longer blocks the run until it ages out of the window: the run is its longest consistent
+    tail, so the later fixes re-anchor as soon as there are enough of them (two after an outage, else three)."""
+    track = _track()
+    gate = GpsGate(CFG)
+    if opened:
+        gate.open(400.0, 90)
+
+    def fix(k, extra=(0.0, 0.0)):
+        return gate.check(track, k, 10.0 * 0.1 * k + dx + extra[0], extra[1], 2.0, 0.0)
+
+    assert fix(100, bad) is Verdict.reject
+    assert fix(110) is Verdict.reject  # (it and the bad one disagree: the bad one leaves the run)
+    assert len(gate.run) == 1
+    if opened:
+        assert fix(120) is Verdict.relocalise
+    else:
+        assert fix(120) is Verdict.reject and fix(130) is Verdict.relocalise
+    r = gate.relocalisation(track, 2.0)
+    assert math.hypot(r.pose.x() - (10.0 * 0.1 * r.k + dx), r.pose.y()) < 1e-6
+
+
+def test_online_estimates_stay_causal_when_a_re_anchoring_reaches_back(straight):
+    """After the outage the next fixes come every 5 s: the frames between the VO's resumption and the
+    re-anchoring keep the estimate the engine had then (300 m off: the online error is causal), while their
+    smoothed estimates are mended."""
+    eng, x = _outage_drive(straight, 300.0, math.radians(90.0), 50, 1000)
+    t_s, online = eng.online_estimates()
+    traj = eng.trajectory()
+    waiting = [i for i, t in enumerate(t_s) if 120.0 - 1e-9 <= t < 124.9]  # resumed at 120 s; fixes at 120, 125 s
+    assert len(waiting) == 49
+    assert min(math.hypot(online[i].x() - x[round(t_s[i] / 0.1)], online[i].y()) for i in waiting) > 200.0
+    assert max(math.hypot(traj[t_s[i]].x() - x[round(t_s[i] / 0.1)], traj[t_s[i]].y()) for i in waiting) < 10.0
+
+
+def _denied_drive(road: RoadMap, reach_back: bool, stretch: float = 1.2):
+    """10 m/s along the road with a fix every second, except in a 60 s GPS-denied zone (frames 1000–1599)
+    where the odometry overstates the distance by ``stretch``: the estimate leaves the zone 120 m ahead."""
+    n = 2200
+    x = -1000.0 + np.arange(n) * 1.0
+    eng = MapFusion(road, FusionConfig(gps_reach_back=reach_back), odometry_rate_hz=10.0)
+    for k in range(n):
+        if k % 10 == 0 and not 1000 <= k < 1600:
+            lat, lon = road.projection.to_geo(float(x[k]), 0.0)
+            eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
+        dx = 0.0 if k == 0 else stretch if 1000 <= k < 1600 else 1.0
+        eng.add_odometry(0.1 * k, gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(dx, 0.0, 0.0)).matrix())
+    eng.finish()
+    return eng, x
+
+
+@pytest.mark.parametrize("reach_back", [True, False])
+def test_a_gps_re_localisation_after_a_denied_zone_mends_the_zone_in_the_smoothed_trajectory(straight, reach_back):
+    """GPS returns 120 m from the estimate, three fixes re-localise; with ``gps_reach_back`` the correction is
+    spread back over the zone (its smoothed frames within 10 m of the truth, against 100 m and more without),
+    and either way the online estimates in the zone are what the engine had then (drifting 120 m)."""
+    eng, x = _denied_drive(straight, reach_back)
+    assert eng.counters.gps_relocalisations == 1
+    t_s, online = eng.online_estimates()
+    traj = eng.trajectory()
+    zone = [i for i, t in enumerate(t_s) if 100.0 <= t < 160.0]
+    smoothed_err = max(abs(traj[t_s[i]].x() - x[round(t_s[i] / 0.1)]) for i in zone)
+    assert abs(online[zone[-1]].x() - x[round(t_s[zone[-1]] / 0.1)]) > 100.0
+    if reach_back:
+        assert smoothed_err < 10.0, smoothed_err
+    else:
+        assert smoothed_err > 100.0, smoothed_err

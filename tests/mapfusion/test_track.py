@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from mapfusion.counters import Counters
 from mapfusion.engine import MapFusion
 from mapfusion.roadmap import RoadMap
-from mapfusion.track import JumpGuard
+from mapfusion.track import JumpGuard, spread_back
 from tests.helpers import straight_road, synthetic_truth, write_osm
 
 
@@ -169,3 +169,34 @@ def test_the_levelling_rotation_takes_the_mean_up_to_vertical(up):
     assert abs(a @ u) < 1e-9 and abs(b @ u) < 1e-9
     assert abs(a @ a - 1.0) < 1e-9 and abs(b @ b - 1.0) < 1e-9 and abs(a @ b) < 1e-9
     assert np.cross(a, b) @ u == pytest.approx(1.0, abs=1e-9)  # (a proper rotation: up goes to +z, not -z)
+
+
+@given(headings=st.lists(st.floats(-math.pi, math.pi), min_size=2, max_size=60), steps=st.floats(0.5, 30.0),
+       off=st.tuples(st.floats(-200.0, 200.0), st.floats(-200.0, 200.0)))
+def test_the_compass_rule_undoes_an_error_that_grows_with_the_distance_driven(headings, steps, off):
+    """A winding estimated path whose error at each pose is ``off`` times the fraction of its length driven
+    to it (a drift proportional to distance): spreading the end's correction back restores the true path,
+    and the first pose (known to be right) is left out."""
+    est = [np.zeros(2)]
+    for h in headings:
+        est.append(est[-1] + np.array([math.cos(h), math.sin(h)]) * steps)
+    driven = np.concatenate(([0.0], np.cumsum([steps] * len(headings))))
+    true = [p + np.array(off) * (s / driven[-1]) for p, s in zip(est, driven)]
+    poses = [gtsam.Pose3(gtsam.Rot3.Yaw(0.1), gtsam.Point3(p[0], p[1], 0.0)) for p in est]
+    now = gtsam.Pose3(gtsam.Rot3.Yaw(0.1), gtsam.Point3(true[-1][0], true[-1][1], 0.0))
+    out = spread_back(poses[:-1], poses[-1], now)
+    assert len(out) == len(poses) - 2
+    for p, q in zip(out, true[1:-1]):
+        assert math.hypot(p.x() - q[0], p.y() - q[1]) < 1e-6 and abs(p.rotation().yaw() - 0.1) < 1e-9
+
+
+@given(n=st.integers(3, 40), dyaw=st.floats(-3.0, 3.0), dx=st.floats(-100.0, 100.0))
+def test_the_compass_rule_turns_each_pose_by_its_share_of_the_heading_correction(n, dyaw, dx):
+    """On an evenly spaced straight path, pose i of n is turned by i/n of the end's heading change and moved
+    by i/n of its position change; the first pose is never in the output (it was right)."""
+    poses = [gtsam.Pose3(gtsam.Rot3.Yaw(0.3), gtsam.Point3(10.0 * i, 0.0, 1.0)) for i in range(n + 1)]
+    now = gtsam.Pose3(gtsam.Rot3.Yaw(0.3 + dyaw), gtsam.Point3(10.0 * n + dx, 0.0, 1.0))
+    out = spread_back(poses[:-1], poses[-1], now)
+    for i, p in enumerate(out, start=1):
+        assert abs(math.remainder(p.rotation().yaw() - 0.3 - dyaw * i / n, 2.0 * math.pi)) < 1e-9
+        assert abs(p.x() - (10.0 * i + dx * i / n)) < 1e-9 and p.z() == 1.0
