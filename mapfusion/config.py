@@ -202,6 +202,14 @@ class PlanarSteps(str, enum.Enum):
     world = "world"  # the odometry frame's horizontal displacement, once levelled (before issue 17's tunnels)
 
 
+class OutageStep(str, enum.Enum):
+    """What the engine takes as the motion across an odometry gap longer than ``reloc_gap_s`` (the VO lost track)."""
+
+    odometry = "odometry"  # the odometry's own step across it (a re-initialised VO's guess)
+    constant_velocity = "constant_velocity"  # the last plausible step's velocity, straight on, over the gap
+    road = "road"  # that distance along the road graph from the matched road (with the map; else constant_velocity)
+
+
 class PriorMode(str, enum.Enum):
     """Which directions the map prior constrains (DESIGN items 3 and 7)."""
 
@@ -750,6 +758,15 @@ class FusionConfig:
         min=0.0,
         exclusive_min=True,
         source="a re-initialised VO guesses the motion it did not see",
+    )
+    outage_step: OutageStep = param(
+        OutageStep.road,
+        "The motion across an odometry gap longer than reloc_gap_s: the odometry's own step; the last "
+        "plausible velocity straight on; or (road) as far along the road graph from the road the estimate "
+        "was matched to, taking at a junction the exit nearest the straight-on guess (without the map, or "
+        "off any road: straight on). A VO that lost track guesses where it resumed: the simulated VO "
+        "carries its last turn over the whole gap and resumed hundreds of metres off in tunnels.",
+        source="issue 17 (rain-tunnel: 363–693 m off on resuming after 25 s in a straight tunnel)",
     )
     outage_step_fraction: float = param(
         0.3, "Translation σ of an outage step as a fraction of its length.", min=0.0, source="by measurement"

@@ -89,7 +89,7 @@ class MapFusion(Reanchoring):
         self.matched_way: list[int] = []  # OSM way the matcher chose at each frame (-1: none)
         self._association = MapAssociation(road, self.cfg, self.counters)
         self._gate = GpsGate(self.cfg)
-        self._jumps = JumpGuard(self.cfg.max_odometry_speed_mps)
+        self._jumps = JumpGuard.for_config(self.cfg)
         self._motion = MotionFusion(self.cfg, self.counters)  # wheel speed and gyro, when fed (issue 18)
         self._release = Release(self.cfg, on_final)  # streaming: final frames handed out, then forgotten
         self._smoother: Smoother | None = None
@@ -279,7 +279,7 @@ class MapFusion(Reanchoring):
 
     # ------------------------------------------------------------------ frames
     def _step(self, k: int) -> gtsam.Pose3:
-        return self.track.step(k, self._aligned.scale)
+        return self._road_steps[k] if k in self._road_steps else self.track.step(k, self._aligned.scale)
 
     def _between(self, k: int, before_init: bool = False, step: gtsam.Pose3 | None = None) -> gtsam.BetweenFactorPose3:
         """The odometry factor into frame k."""
@@ -290,11 +290,11 @@ class MapFusion(Reanchoring):
 
     def _add_frame(self, k: int) -> None:
         track, sm = self.track, self._sm
-        step = self._step(k)
-        sm.add(self._between(k, step=step))
         prev = track.online[k - 1]
         if prev is None:
             prev = self._to_map(track.raw[k - 1])
+        step = self._along_road(k, prev)
+        sm.add(self._between(k, step=step))
         pred = prev.compose(step)
         self._note_outage(k, step)
         sm.insert(k, pred)

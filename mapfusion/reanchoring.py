@@ -13,13 +13,13 @@ import numpy as np
 
 from . import factors
 from .association import MapAssociation
-from .config import FusionConfig, StateModel
+from .config import FusionConfig, OutageStep, StateModel
 from .counters import Counters
 from .errors import EngineError
 from .gps_gate import GpsGate
 from .initialisation import Initialiser
 from .metrics import umeyama
-from .relocalise import Located, Region, Search
+from .relocalise import Located, Region, RoadParticles, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
 from .track import Alignment, Track, planar_of, spread_back
@@ -50,6 +50,8 @@ class Reanchoring:
 
     def _init_reanchoring(self) -> None:
         self._search = Search(self.road, self.cfg)  # re-localisation on the road network (issue 17)
+        self._road_steps: dict[int, gtsam.Pose3] = {}  # outages' steps along the road graph, by frame
+        self._follower: RoadParticles | None = None
         self.relocalised_at = []  # (time, distance searched) of each map re-localisation
         self._checked_fix_t = math.nan  # the last fix whose silence started a search
 
@@ -144,6 +146,34 @@ class Reanchoring:
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
                  math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
         self._update()
+
+    def _along_road(self, k: int, prev: gtsam.Pose3) -> gtsam.Pose3:
+        """The step into frame k. After an odometry outage longer than ``reloc_gap_s`` with ``outage_step =
+        road`` and the map: as far as the odometry's guess (the last velocity straight on) goes, but along the
+        road graph from the road ``prev`` is matched to (a tunnel's curve, the road beyond a junction nearest
+        the guess), held for re-use (a restart re-adds it)."""
+        step = self._step(k)
+        cfg, t = self.cfg, self.track.t
+        if (cfg.outage_step is not OutageStep.road or not cfg.use_map or cfg.state is not StateModel.planar
+                or t[k] - t[k - 1] <= cfg.reloc_gap_s):
+            return step
+        m = self.road.match(prev.x(), prev.y(), prev.rotation().yaw(), cfg.search_radius_m,
+                            cfg.angle_weight_m_per_deg)
+        if m is None or m.is_join:
+            return step
+        if self._follower is None:
+            self._follower = RoadParticles(self.road, cfg, cfg.reloc_seed)
+        guess = prev.compose(step)
+        tr = step.translation()
+        length_m = math.sqrt(tr.dot(tr))
+        x, y, yaw = self._follower.follow(m.edge, -1 if m.reversed else 1, m.along_m, length_m, (guess.x(), guess.y()),
+                                          cfg.reloc_sigma_m + cfg.outage_step_fraction * length_m)
+        road_step = prev.between(gtsam.Pose3(gtsam.Rot3.Ypr(yaw, prev.rotation().pitch(), prev.rotation().roll()),
+                                             gtsam.Point3(x, y, prev.z())))
+        self._road_steps[k] = road_step
+        log.info("t=%.1f s: the odometry resumed after %.1f s: carried %.0f m along the road", t[k], t[k] - t[k - 1],
+                 length_m)
+        return road_step
 
     def _note_outage(self, k: int, step: gtsam.Pose3) -> None:
         """An odometry outage longer than ``reloc_gap_s`` into frame k: where the odometry resumed is a guess,

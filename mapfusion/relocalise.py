@@ -115,6 +115,22 @@ class RoadParticles:
         self.driven_m = 0.0
         return int(near.size)
 
+    def follow(self, edge: int, direction: int, along_m: float, distance_m: float, target_xy: tuple[float, float],
+               sigma_m: float, n: int = 32) -> tuple[float, float, float]:
+        """Drive ``distance_m`` along the graph from (edge, direction, along): ``n`` drives, each taking at a
+        vertex an exit drawn in proportion to how near it leads to ``target_xy`` (see :meth:`_drive`); the
+        end nearest the target is the answer, as (x, y, heading of its road in its direction). The filter's
+        own particles are replaced."""
+        self.edge = np.full(n, edge, dtype=np.int64)
+        self.direction = np.full(n, direction, dtype=np.int64)
+        self.along = np.full(n, float(along_m))
+        self.offset, self.logw, self.driven_m = np.zeros(n), np.full(n, -math.log(n)), 0.0
+        self._drive(np.full(n, float(distance_m)), np.tile(np.asarray(target_xy, dtype=float), (n, 1)), sigma_m)
+        xy = self.positions()
+        i = int(np.argmin(np.hypot(xy[:, 0] - target_xy[0], xy[:, 1] - target_xy[1])))
+        yaw = float(self._heading(self.edge[i:i + 1], self.along[i:i + 1], self.direction[i:i + 1])[0])
+        return float(xy[i, 0]), float(xy[i, 1]), math.remainder(yaw, 2.0 * math.pi)
+
     # ---------------------------------------------------------------- geometry on the graph
     def positions(self, edge: np.ndarray | None = None, along: np.ndarray | None = None) -> np.ndarray:
         """(n, 2) map positions of (edge, along) pairs (the particles' own by default)."""

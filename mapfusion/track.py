@@ -21,7 +21,7 @@ from typing import Generic, TypeVar
 import gtsam
 import numpy as np
 
-from .config import FusionConfig, PlanarSteps, StateModel
+from .config import FusionConfig, OutageStep, PlanarSteps, StateModel
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -333,16 +333,25 @@ class JumpGuard:
 
     A step is impossible when its speed exceeds ``max_speed_mps`` (scaled by the odometry's scale
     once known) and 20 times the median of the last 50 plausible steps (so a monocular odometry of
-    unknown scale is not flagged for its units alone).
+    unknown scale is not flagged for its units alone). A step over a gap longer than ``gap_s`` (the VO
+    lost track; where it says it resumed is its own guess) is replaced by the last plausible velocity,
+    straight on over the gap (``gap_bridged``; not a jump).
     """
 
     RATIO, HISTORY, MIN_HISTORY, MIN_TYPICAL_MPS = 20.0, 50, 10, 0.5
 
-    def __init__(self, max_speed_mps: float) -> None:
+    def __init__(self, max_speed_mps: float, gap_s: float = math.inf) -> None:
         self.max_speed_mps = max_speed_mps
+        self.gap_s = gap_s  # a step over a longer gap is replaced by the last velocity, straight on
+        self.gap_bridged = False  # the last step checked was such a gap
         self._speeds: deque[float] = deque(maxlen=self.HISTORY)
         self._last: tuple[float, gtsam.Pose3] | None = None  # (dt, rel) of the last plausible step
         self._t: float | None = None
+
+    @classmethod
+    def for_config(cls, cfg: FusionConfig) -> JumpGuard:
+        """The engine's guard: gaps bridged by the last velocity unless ``outage_step`` is the odometry's own."""
+        return cls(cfg.max_odometry_speed_mps, math.inf if cfg.outage_step is OutageStep.odometry else cfg.reloc_gap_s)
 
     def check(self, t: float, rel: gtsam.Pose3, scale: float | None) -> tuple[gtsam.Pose3, bool]:
         """The step to use into the frame at ``t``, and whether ``rel`` was an impossible jump."""
@@ -350,6 +359,11 @@ class JumpGuard:
             self._t = t
             return rel, False
         dt, self._t = max(t - self._t, 1e-3), t
+        self.gap_bridged = dt > self.gap_s and self._last is not None
+        if self.gap_bridged:
+            assert self._last is not None
+            last_dt, last = self._last
+            return gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(*(last.translation() * (dt / last_dt)))), False
         tr = rel.translation()
         speed = math.sqrt(tr.dot(tr)) * (scale or 1.0) / dt  # (np.linalg.norm's own arithmetic, less its overhead)
         impossible = False
@@ -367,6 +381,8 @@ class JumpGuard:
     def bridge(self, t: float, rel: gtsam.Pose3, scale: float | None, counters) -> gtsam.Pose3:
         """:meth:`check`, counting (``counters.odometry_jumps``) and logging a bridged jump."""
         step, jump = self.check(t, rel, scale)
+        if self.gap_bridged:
+            log.info("the odometry resumed at t = %.3f s after a gap: the last velocity carried straight over it", t)
         if jump:
             counters.odometry_jumps += 1
             log.warning("the odometry step into t = %.3f s implies an impossible speed: bridged", t)

@@ -45,6 +45,28 @@ def test_an_impossible_jump_is_bridged_with_the_last_motion(cruise, jump_m, dt, 
     assert math.isclose(float(np.linalg.norm(out.translation())), cruise * dt, rel_tol=1e-9)
 
 
+@given(cruise=st.floats(1.0, 30.0), dt=st.floats(0.05, 0.2), gap_s=st.floats(0.0, 60.0),
+       resumed=st.tuples(st.floats(-500.0, 500.0), st.floats(-500.0, 500.0), st.floats(-3.0, 3.0)))
+def test_a_step_over_a_gap_longer_than_the_limit_is_the_last_velocity_straight_on(cruise, dt, gap_s, resumed):
+    """Whatever the odometry says it did over a gap longer than gap_s (3 s), the step is the last step's
+    velocity over the gap, with no turn (not a jump); over a shorter gap the odometry's own step stands
+    (unless it implies an impossible speed: a jump, as before)."""
+    g = JumpGuard(70.0, gap_s=3.0)
+    t = 0.0
+    g.check(t, gtsam.Pose3(), None)
+    for _ in range(20):
+        t += dt
+        g.check(t, _step(cruise * dt, 0.01), None)
+    own = gtsam.Pose3(gtsam.Rot3.Yaw(resumed[2]), gtsam.Point3(resumed[0], resumed[1], 0.0))
+    out, jump = g.check(t + dt + gap_s, own, None)
+    if dt + gap_s <= 3.0:  # (the jump guard's own test still applies)
+        assert not g.gap_bridged and (out is own or jump)
+        return
+    assert g.gap_bridged and not jump
+    assert out.rotation().equals(gtsam.Rot3(), 1e-12)
+    assert np.allclose(out.translation(), [cruise * (dt + gap_s), 0.0, 0.0], rtol=1e-9, atol=1e-9)
+
+
 def test_a_monocular_odometry_in_small_units_is_not_flagged_for_its_units():
     """A mono VO whose unit is a thirtieth of a metre reads 300 units/s at 10 m/s before its scale
     is known: its steps are judged against its own typical speed, so a steady drive is no jump."""
