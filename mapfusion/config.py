@@ -768,6 +768,12 @@ class FusionConfig:
         "carries its last turn over the whole gap and resumed hundreds of metres off in tunnels.",
         source="issue 17 (rain-tunnel: 363–693 m off on resuming after 25 s in a straight tunnel)",
     )
+    outage_turn: bool = param(
+        True,
+        "With outage_step = road: at a junction inside the gap, take the exit nearest the last velocity turned "
+        "by the odometry's own turn over the gap (a constant turn); false: nearest straight on.",
+        source="issue 17 (kidnapped: a 94° turn inside an 8 s gap)",
+    )
     outage_step_fraction: float = param(
         0.3, "Translation σ of an outage step as a fraction of its length.", min=0.0, source="by measurement"
     )

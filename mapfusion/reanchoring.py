@@ -22,7 +22,7 @@ from .metrics import umeyama
 from .relocalise import Located, Region, RoadParticles, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
-from .track import Alignment, Track, planar_of, spread_back
+from .track import Alignment, JumpGuard, Track, planar_of, spread_back
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +40,7 @@ class Reanchoring:
     _association: MapAssociation
     _gate: GpsGate
     _search: Search
+    _jumps: JumpGuard
     _checked_fix_t: float
     initialiser: Initialiser
     _pos_sigma: float
@@ -163,9 +164,12 @@ class Reanchoring:
             return step
         if self._follower is None:
             self._follower = RoadParticles(self.road, cfg, cfg.reloc_seed)
-        guess = prev.compose(step)
         tr = step.translation()
         length_m = math.sqrt(tr.dot(tr))
+        # which way at a junction: the guess turns by the odometry's own turn over the gap, as a constant turn
+        half = 0.5 * self._jumps.gap_yaw_rad if cfg.outage_turn else 0.0
+        chord = length_m * (math.sin(half) / half if abs(half) > 1e-9 else 1.0)
+        guess = prev.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(chord * math.cos(half), chord * math.sin(half), 0)))
         x, y, yaw = self._follower.follow(m.edge, -1 if m.reversed else 1, m.along_m, length_m, (guess.x(), guess.y()),
                                           cfg.reloc_sigma_m + cfg.outage_step_fraction * length_m)
         road_step = prev.between(gtsam.Pose3(gtsam.Rot3.Ypr(yaw, prev.rotation().pitch(), prev.rotation().roll()),

@@ -344,6 +344,7 @@ class JumpGuard:
         self.max_speed_mps = max_speed_mps
         self.gap_s = gap_s  # a step over a longer gap is replaced by the last velocity, straight on
         self.gap_bridged = False  # the last step checked was such a gap
+        self.gap_yaw_rad = 0.0  # and the odometry's own turn over it (the only word on a turn in the gap)
         self._speeds: deque[float] = deque(maxlen=self.HISTORY)
         self._last: tuple[float, gtsam.Pose3] | None = None  # (dt, rel) of the last plausible step
         self._t: float | None = None
@@ -362,6 +363,7 @@ class JumpGuard:
         self.gap_bridged = dt > self.gap_s and self._last is not None
         if self.gap_bridged:
             assert self._last is not None
+            self.gap_yaw_rad = rel.rotation().yaw()
             last_dt, last = self._last
             return gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(*(last.translation() * (dt / last_dt)))), False
         tr = rel.translation()

@@ -85,3 +85,48 @@ def test_the_map_carries_the_estimate_round_the_bend_across_an_outage(bend):
 def test_without_the_map_the_road_mode_is_straight_on(bend):
     """The baseline (no map) cannot follow a road: ``road`` falls back to the last velocity straight on."""
     assert _drive(bend, OutageStep.road, use_map=False) == _drive(bend, OutageStep.constant_velocity, use_map=False)
+
+
+@pytest.fixture(scope="module")
+def tee(tmp_path_factory) -> tuple[RoadMap, np.ndarray]:
+    """A road east through a junction at the origin (on to x = 1000 m) and a branch north from it; the offset
+    of the test's frame in the map's ENU frame."""
+    east = np.array([[-2000.0, 0.0], [0.0, 0.0], [1000.0, 0.0]])
+    north = np.array([[0.0, 0.0], [0.0, 1000.0]])
+    tags = {"highway": "primary", "lanes": "2"}
+    road = RoadMap.from_osm(write_osm(tmp_path_factory.mktemp("osm"), [(east, tags), (north, dict(tags))]))
+    i = int(np.argmin(np.hypot(*(road.xy_m - road.xy_m.min(axis=0)).T)))  # the west end
+    return road, road.xy_m[i] - east[0]
+
+
+def _turn_at(s_m: float) -> tuple[float, float, float]:
+    """East to the junction at arc length 2000 m, then north (a 90° left turn)."""
+    return (s_m - 2000.0, 0.0, 0.0) if s_m <= 2000.0 else (0.0, s_m - 2000.0, math.pi / 2.0)
+
+
+def test_a_turn_at_a_junction_inside_the_gap_follows_the_odometrys_own_turn(tee):
+    """The VO is out for 10 s from 40 m before the junction, in which the vehicle turns left; it resumes
+    reporting the turn (90°) but 150 m too far. With ``outage_turn`` the engine carries the last velocity along
+    the road into the branch the odometry's turn points to: within 15 m; straight on, it takes the road east
+    (about 85 m off)."""
+    road, (ox, oy) = tee
+    errs = {}
+    for turn in (True, False):
+        eng = MapFusion(road, FusionConfig(outage_turn=turn), odometry_rate_hz=10.0)
+        prev = None
+        for k in range(2061):
+            x, y, yaw = _turn_at(1.0 * k)
+            if k % 10 == 0 and k <= 1900:
+                lat, lon = road.projection.to_geo(x + ox, y + oy)
+                eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
+            if 1960 < k < 2060:
+                continue
+            pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x + ox, y + oy, 0.0))
+            rel = gtsam.Pose3() if prev is None else prev.between(pose)
+            if k == 2060:  # the VO's own guess: the turn, but 150 m too far on
+                rel = rel.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(150.0, 0.0, 0.0)))
+            eng.add_odometry(0.1 * k, rel.matrix())
+            prev = pose
+        last = eng.online_estimates()[1][-1]
+        errs[turn] = math.hypot(last.x() - ox, last.y() - oy - 60.0)
+    assert errs[True] < 15.0 and errs[False] > 60.0, errs
