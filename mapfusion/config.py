@@ -774,6 +774,14 @@ class FusionConfig:
         "by the odometry's own turn over the gap (a constant turn); false: nearest straight on.",
         source="issue 17 (kidnapped: a 94° turn inside an 8 s gap)",
     )
+    outage_on_road_deg: float = param(
+        10.0,
+        "With outage_step = road: an estimate within its road's width (plus a lane) and heading along it within "
+        "this is carried on the road itself (its heading becomes the road's); else by the road's own motion from "
+        "where it is matched, its offset and heading error kept.",
+        unit="deg", min=0.0, max=180.0,
+        source="issue 17: set60 Helsinki heavy rain s6 (37 m off before a 3 s gap: 17 -> 57 m when snapped)",
+    )
     outage_step_fraction: float = param(
         0.3, "Translation σ of an outage step as a fraction of its length.", min=0.0, source="by measurement"
     )

@@ -22,7 +22,7 @@ from .metrics import umeyama
 from .relocalise import Located, Region, RoadParticles, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
-from .track import Alignment, JumpGuard, Track, planar_of, spread_back
+from .track import Alignment, JumpGuard, Track, level, planar_of, spread_back
 
 log = logging.getLogger(__name__)
 
@@ -169,11 +169,19 @@ class Reanchoring:
         # which way at a junction: the guess turns by the odometry's own turn over the gap, as a constant turn
         half = 0.5 * self._jumps.gap_yaw_rad if cfg.outage_turn else 0.0
         chord = length_m * (math.sin(half) / half if abs(half) > 1e-9 else 1.0)
-        guess = prev.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(chord * math.cos(half), chord * math.sin(half), 0)))
-        x, y, yaw = self._follower.follow(m.edge, -1 if m.reversed else 1, m.along_m, length_m, (guess.x(), guess.y()),
+        # an estimate on its road (within its width, along it) is carried on the road itself; one off it or
+        # turned against it by the road's own motion from where it is matched (its offset kept: the map's
+        # priors judge that)
+        place = (m.edge, -1 if m.reversed else 1, m.along_m)
+        x0, y0, yaw0 = self._follower.road_pose(*place)
+        start = gtsam.Pose3(gtsam.Rot3.Yaw(yaw0), gtsam.Point3(x0, y0, 0.0))
+        if m.lateral_m <= (0.5 * m.lanes + 1.0) * cfg.lane_width_m and m.angle_deg <= cfg.outage_on_road_deg:
+            start = level(prev)
+        guess = start.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(chord * math.cos(half), chord * math.sin(half),
+                                                                      0.0)))
+        x, y, yaw = self._follower.follow(*place, length_m, (guess.x(), guess.y()),
                                           cfg.reloc_sigma_m + cfg.outage_step_fraction * length_m)
-        road_step = prev.between(gtsam.Pose3(gtsam.Rot3.Ypr(yaw, prev.rotation().pitch(), prev.rotation().roll()),
-                                             gtsam.Point3(x, y, prev.z())))
+        road_step = start.between(gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x, y, start.z())))
         self._road_steps[k] = road_step
         log.info("t=%.1f s: the odometry resumed after %.1f s: carried %.0f m along the road", t[k], t[k] - t[k - 1],
                  length_m)

@@ -115,6 +115,12 @@ class RoadParticles:
         self.driven_m = 0.0
         return int(near.size)
 
+    def road_pose(self, edge: int, direction: int, along_m: float) -> tuple[float, float, float]:
+        """(x, y, heading in the direction of travel) of a place on the graph."""
+        e, a, d = np.array([edge]), np.array([float(along_m)]), np.array([direction])
+        xy = self.positions(e, a)[0]
+        return float(xy[0]), float(xy[1]), math.remainder(float(self._heading(e, a, d)[0]), 2.0 * math.pi)
+
     def follow(self, edge: int, direction: int, along_m: float, distance_m: float, target_xy: tuple[float, float],
                sigma_m: float, n: int = 32) -> tuple[float, float, float]:
         """Drive ``distance_m`` along the graph from (edge, direction, along): ``n`` drives, each taking at a
@@ -128,8 +134,7 @@ class RoadParticles:
         self._drive(np.full(n, float(distance_m)), np.tile(np.asarray(target_xy, dtype=float), (n, 1)), sigma_m)
         xy = self.positions()
         i = int(np.argmin(np.hypot(xy[:, 0] - target_xy[0], xy[:, 1] - target_xy[1])))
-        yaw = float(self._heading(self.edge[i:i + 1], self.along[i:i + 1], self.direction[i:i + 1])[0])
-        return float(xy[i, 0]), float(xy[i, 1]), math.remainder(yaw, 2.0 * math.pi)
+        return self.road_pose(int(self.edge[i]), int(self.direction[i]), float(self.along[i]))
 
     # ---------------------------------------------------------------- geometry on the graph
     def positions(self, edge: np.ndarray | None = None, along: np.ndarray | None = None) -> np.ndarray:
