@@ -763,7 +763,7 @@ class FusionConfig:
         OutageStep.road,
         "The motion across an odometry gap longer than reloc_gap_s: the odometry's own step; the last "
         "plausible velocity straight on; or (road) as far along the road graph from the road the estimate "
-        "was matched to, taking at a junction the exit nearest the straight-on guess (without the map, or "
+        "was matched to, taking at a junction the exit nearest the guess (outage_turn; without the map, or "
         "off any road: straight on). A VO that lost track guesses where it resumed: the simulated VO "
         "carries its last turn over the whole gap and resumed hundreds of metres off in tunnels.",
         source="issue 17 (rain-tunnel: 363–693 m off on resuming after 25 s in a straight tunnel)",
