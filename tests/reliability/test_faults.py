@@ -172,7 +172,12 @@ def test_a_killed_tune_trial_is_marked_failed_on_resume(tmp_path):
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait(timeout=30)
     before = states()
-    assert TrialState.RUNNING in before, "the tune was not killed inside a trial"
+    for _ in range(50):  # (a reader can meet the database mid-recovery from the kill: read it again)
+        if before:
+            break
+        time.sleep(0.1)
+        before = states()
+    assert TrialState.RUNNING in before, f"the tune was not killed inside a trial: {before}"
     r = subprocess.run([*cmd, "--trials", "1"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     after = states()
