@@ -173,10 +173,11 @@ class Reanchoring:
         # turned against it by the road's own motion from where it is matched (its offset kept: the map's
         # priors judge that)
         place = (m.edge, -1 if m.reversed else 1, m.along_m)
-        x0, y0, yaw0 = self._follower.road_pose(*place)
-        start = gtsam.Pose3(gtsam.Rot3.Yaw(yaw0), gtsam.Point3(x0, y0, 0.0))
         if m.lateral_m <= (0.5 * m.lanes + 1.0) * cfg.lane_width_m and m.angle_deg <= cfg.outage_on_road_deg:
             start = level(prev)
+        else:
+            x0, y0, yaw0 = self._follower.road_pose(*place)
+            start = gtsam.Pose3(gtsam.Rot3.Yaw(yaw0), gtsam.Point3(x0, y0, 0.0))
         guess = start.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(chord * math.cos(half), chord * math.sin(half),
                                                                       0.0)))
         x, y, yaw = self._follower.follow(*place, length_m, (guess.x(), guess.y()),

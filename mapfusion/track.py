@@ -362,10 +362,8 @@ class JumpGuard:
         dt, self._t = max(t - self._t, 1e-3), t
         self.gap_bridged = dt > self.gap_s and self._last is not None
         if self.gap_bridged:
-            assert self._last is not None
             self.gap_yaw_rad = rel.rotation().yaw()
-            last_dt, last = self._last
-            return gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(*(last.translation() * (dt / last_dt)))), False
+            return self._carried(dt, gtsam.Rot3()), False
         tr = rel.translation()
         speed = math.sqrt(tr.dot(tr)) * (scale or 1.0) / dt  # (np.linalg.norm's own arithmetic, less its overhead)
         impossible = False
@@ -374,11 +372,16 @@ class JumpGuard:
             typical = float(np.median(self._speeds)) if seen else math.inf
             impossible = speed > self.RATIO * max(typical, self.MIN_TYPICAL_MPS)
         if impossible and self._last is not None:
-            last_dt, last = self._last
-            return gtsam.Pose3(last.rotation(), gtsam.Point3(*(last.translation() * (dt / last_dt)))), True
+            return self._carried(dt, self._last[1].rotation()), True
         self._speeds.append(speed)
         self._last = (dt, rel)
         return rel, False
+
+    def _carried(self, dt: float, rotation: gtsam.Rot3) -> gtsam.Pose3:
+        """The last plausible step's velocity carried over ``dt``, with ``rotation``."""
+        assert self._last is not None
+        last_dt, last = self._last
+        return gtsam.Pose3(rotation, gtsam.Point3(*(last.translation() * (dt / last_dt))))
 
     def bridge(self, t: float, rel: gtsam.Pose3, scale: float | None, counters) -> gtsam.Pose3:
         """:meth:`check`, counting (``counters.odometry_jumps``) and logging a bridged jump."""
