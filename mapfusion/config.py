@@ -602,6 +602,16 @@ class FusionConfig:
                                      "scale error).", unit="m/m", min=0.0, max=10.0, source="issue 17; by measurement")
     reloc_scale_sigma: float = param(0.03, "Relative σ of each particle's distance per step (the odometry's scale "
                                      "error).", unit="1", min=0.0, max=1.0, source="issue 22's fitted VO: 2.5% scale")
+    reloc_scale_min: float = param(1.0, "Smallest odometry scale (map metres per odometry unit) a cold start searches "
+                                   "over; with reloc_scale_max above it the scale is unknown and found with the "
+                                   "position (fuse --scale-unknown). 1 and 1: a metric odometry, taken as given.",
+                                   unit="m/unit", min=1e-6, max=1e6, source="issue 17 item 2")
+    reloc_scale_max: float = param(1.0, "Largest odometry scale a cold start searches over (see reloc_scale_min).",
+                                   unit="m/unit", min=1e-6, max=1e6, source="issue 17 item 2")
+    reloc_scale_walk: float = param(0.005, "σ of the random walk of a particle's log-scale per step, when the scale "
+                                    "is searched for (a monocular VO's scale wanders).", unit="1", min=0.0, max=1.0,
+                                    source="issue 22: real mono VO's scale random walk 0.004 per √m, 5 m steps "
+                                    "→ 0.009; by measurement")
     reloc_along_sigma_m: float = param(0.5, "σ added to each particle's distance per step (diffusion along the "
                                        "road).", unit="m", min=0.0, max=100.0, source="issue 17; by measurement")
     reloc_offset_gain: float = param(0.2, "Gain with which a particle's heading offset follows each step's heading "
@@ -955,6 +965,11 @@ class FusionConfig:
         max=86400.0,
         source="issue 18: long enough for 0.1% from 1 Hz fixes of σ 2 m; short enough to follow tyre warm-up",
     )
+
+    def __post_init__(self) -> None:
+        if self.reloc_scale_min > self.reloc_scale_max:
+            raise ConfigError(f"reloc_scale_min ({self.reloc_scale_min:g}) exceeds reloc_scale_max "
+                              f"({self.reloc_scale_max:g})")
 
     @classmethod
     def faithful(cls, **changes) -> FusionConfig:

@@ -66,15 +66,17 @@ class Reanchoring:
 
     def start_in_region(self, lat: float, lon: float, radius_m: float) -> None:
         """Cold start without GPS (issue 17): the vehicle starts somewhere on the roads within ``radius_m`` of
-        (lat, lon); the odometry's shape finds it, and the estimate begins once found. The odometry must be
-        metric (a stereo VO, a VIO): its scale is taken as 1."""
+        (lat, lon); the odometry's shape finds it, and the estimate begins once found. The odometry's scale is
+        taken as 1 (a metric VO or VIO) unless ``reloc_scale_min`` < ``reloc_scale_max``: then the search finds
+        the scale in that range with the position (``fuse --scale-unknown``)."""
         if self.alignment is not None or self.track.t:
             raise EngineError("start_in_region must be called before the first odometry frame")
         if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(radius_m) and radius_m > 0):
             raise EngineError(f"start region needs a finite latitude, longitude and radius > 0, got {lat}, {lon}, "
                               f"{radius_m}")
         x, y = self.road.projection.to_enu(lat, lon)
-        self._search.begin(Region(float(x), float(y), float(radius_m)))
+        self._search.begin(Region(float(x), float(y), float(radius_m)),
+                           (self.cfg.reloc_scale_min, self.cfg.reloc_scale_max))
 
     @property
     def searching_from_region(self) -> bool:
@@ -95,14 +97,15 @@ class Reanchoring:
 
     def _initialise_at(self, loc: Located) -> None:
         """A cold start's search has found the vehicle: the odometry's frame aligned so that its last pose
-        is the found one (scale 1), the frames so far solved as at a GPS initialisation."""
+        is the found one (at the search's scale), the frames so far solved as at a GPS initialisation."""
         if self.cfg.state is StateModel.planar and self.track.level_rot is None:
             self.track.level_frame()
         raw = self.track.raw[-1]
         rot = loc.yaw_rad - raw.rotation().yaw()
         c, s, (px, py, _) = math.cos(rot), math.sin(rot), raw.translation()
-        self._begin(Alignment(1.0, self.cfg.reloc_scale_sigma, rot, np.array([loc.x_m - (c * px - s * py),
-                                                                               loc.y_m - (s * px + c * py)])),
+        k, c, s = loc.scale, c * loc.scale, s * loc.scale
+        sigma = max(self.cfg.reloc_scale_sigma, loc.scale_spread) * k
+        self._begin(Alignment(k, sigma, rot, np.array([loc.x_m - (c * px - s * py), loc.y_m - (s * px + c * py)])),
                     anchor=len(self.track) - 1)
         self.counters.map_relocalisations += 1
         self.relocalised_at.append((self.track.t[-1], loc.driven_m))

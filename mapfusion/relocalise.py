@@ -15,6 +15,12 @@ what separates the right place from the others; a straight road is the same ever
 posterior stays spread until the path turns. The offset follows the odometry's slow heading drift
 (a small gain on each step's heading innovation).
 
+Each particle also carries the odometry's scale (map metres per odometry unit). It is 1 for a metric
+odometry taken as given; a search told the scale is unknown (``--scale-unknown``: ``reloc_scale_min``
+to ``reloc_scale_max``) draws it log-uniformly over that range, and the lengths between turns decide it
+as they decide the place: a particle with the wrong scale reaches the next junction too early or too
+late. Its logarithm walks by ``reloc_scale_walk`` a step (a monocular VO's scale wanders).
+
 The posterior has *converged* when one disc of ``reloc_converge_radius_m`` holds at least
 ``reloc_converge_mass`` of it after at least ``reloc_min_distance_m`` of driving; the answer is that
 cluster's pose (on its road, heading from its offsets) and its spread.
@@ -42,6 +48,10 @@ __all__ = ["Region", "Located", "RoadParticles", "Relocaliser"]
 #: Vertices a particle may pass in one step (a step longer than this many short edges stops at the last).
 MAX_HOPS = 16
 
+#: A search for the scale spreads as many particles per factor SCALE_BAND of its range as a search at a
+#: known scale has in all (0.5-2: four times as many; 8 Helsinki drives found at 1.4, 3 wrong with once as many).
+SCALE_BAND = math.sqrt(2.0)
+
 
 @dataclass(frozen=True)
 class Region:
@@ -66,7 +76,9 @@ class Located:
     mass: float  # posterior mass within reloc_converge_radius_m of the pose
     spread_m: float  # RMS distance of that mass from the pose
     yaw_spread_rad: float  # circular σ of its offsets
-    driven_m: float  # odometry distance since the filter started
+    driven_m: float  # odometry distance since the filter started (m, at the posterior's scale)
+    scale: float = 1.0  # the cluster's odometry scale (map metres per odometry unit; its weighted geometric mean)
+    scale_spread: float = 0.0  # relative σ of that scale within the cluster
 
 
 class RoadParticles:
@@ -85,23 +97,30 @@ class RoadParticles:
         self.direction = np.zeros(0, dtype=np.int64)
         self.along = np.zeros(0)
         self.offset = np.zeros(0)
+        self.log_scale = np.zeros(0)
+        self.scale_free = False  # the scale is a state of the search (a range was given)
         self.logw = np.zeros(0)
         self.driven_m = 0.0
 
     def __len__(self) -> int:
         return len(self.edge)
 
-    def start(self, region: Region, odometry_yaw_rad: float, n: int | None = None) -> int:
+    def start(self, region: Region, odometry_yaw_rad: float, n: int | None = None,
+              scale_range: tuple[float, float] = (1.0, 1.0)) -> int:
         """Spread ``n`` particles (``reloc_particles``) uniformly over the road length inside the region,
-        in each legal direction, heading along their roads; returns how many way-points lay inside."""
+        in each legal direction, heading along their roads, their scales log-uniform over ``scale_range``;
+        returns how many way-points lay inside."""
         road = self.road
         near = road.query_radius(region.x_m, region.y_m, region.radius_m)
         near = near[near < self._n_pts]
         if near.size == 0:
             self.edge = np.zeros(0, dtype=np.int64)
             return 0
+        lo, hi = math.log(scale_range[0]), math.log(scale_range[1])
         if n is None:  # by the road length in the region (way-points ~1 m apart), both directions
-            n = int(min(self.cfg.reloc_particles, max(1000, self.cfg.reloc_particles_per_m * near.size)))
+            # and, when the scale is searched too, by its range: one band of particles per factor √2
+            bands = max(1.0, (hi - lo) / math.log(SCALE_BAND))
+            n = int(bands * min(self.cfg.reloc_particles, max(1000, self.cfg.reloc_particles_per_m * near.size)))
         pick = near[self.rng.integers(0, near.size, n)]
         travel = road.travel[pick]
         d = np.where(self.rng.random(n) < 0.5, 1, -1)
@@ -111,6 +130,9 @@ class RoadParticles:
         self.along = road.s_m[pick].astype(np.float64)
         yaw = self._heading(self.edge, self.along, d)
         self.offset = wrap_angle(yaw - odometry_yaw_rad + self.rng.normal(0.0, math.radians(2.0), n))
+        self.scale_free = hi > lo
+        self._log_range = (lo, hi)
+        self.log_scale = self.rng.uniform(lo, hi, n) if self.scale_free else np.full(n, lo)
         self.logw = np.full(n, -math.log(n))
         self.driven_m = 0.0
         return int(near.size)
@@ -131,6 +153,7 @@ class RoadParticles:
         self.direction = np.full(n, direction, dtype=np.int64)
         self.along = np.full(n, float(along_m))
         self.offset, self.logw, self.driven_m = np.zeros(n), np.full(n, -math.log(n)), 0.0
+        self.log_scale, self.scale_free = np.zeros(n), False
         self._drive(np.full(n, float(distance_m)), np.tile(np.asarray(target_xy, dtype=float), (n, 1)), sigma_m)
         xy = self.positions()
         i = int(np.argmin(np.hypot(xy[:, 0] - target_xy[0], xy[:, 1] - target_xy[1])))
@@ -212,26 +235,37 @@ class RoadParticles:
             return
         cfg, rng, n = self.cfg, self.rng, len(self)
         before = self.positions()
-        c, s = np.cos(self.offset), np.sin(self.offset)
+        scale = np.exp(self.log_scale)
+        c, s = np.cos(self.offset) * scale, np.sin(self.offset) * scale
         ox, oy = chord_odo_xy
-        expected = np.column_stack([c * ox - s * oy, s * ox + c * oy])  # the odometry's displacement, per offset
-        sigma = cfg.reloc_sigma_m + cfg.reloc_sigma_per_m * moved_m
+        expected = np.column_stack([c * ox - s * oy, s * ox + c * oy])  # the odometry's displacement, per particle
+        metres = moved_m * scale
+        sigma = cfg.reloc_sigma_m + cfg.reloc_sigma_per_m * metres
         noise = 1.0 + rng.normal(0.0, cfg.reloc_scale_sigma, n)
-        self._drive(np.maximum(moved_m * noise + rng.normal(0.0, cfg.reloc_along_sigma_m, n), 0.0), before + expected,
-                    sigma)
+        self._drive(np.maximum(metres * noise + rng.normal(0.0, cfg.reloc_along_sigma_m, n), 0.0), before + expected,
+                    float(np.median(sigma)))
         moved = self.positions() - before  # each particle's displacement on the road
         ex = moved[:, 0] - expected[:, 0]
         ey = moved[:, 1] - expected[:, 1]
-        self.logw += -0.5 * (ex * ex + ey * ey) / (sigma * sigma)
+        if self.scale_free:
+            # compared at one reference scale: a particle whose scale is small makes small errors in metres,
+            # and σ's constant part would otherwise favour it whatever the path's shape says
+            ref = math.exp(0.5 * sum(self._log_range))
+            sigma = cfg.reloc_sigma_m + cfg.reloc_sigma_per_m * moved_m * ref
+            self.logw += -0.5 * (ex * ex + ey * ey) * (ref * ref) / (scale * scale * sigma * sigma)
+        else:
+            self.logw += -0.5 * (ex * ex + ey * ey) / (sigma * sigma)
         chord = math.hypot(ox, oy)
         if chord > 1.0:  # the offset follows the odometry's heading drift
             road_dir = np.arctan2(moved[:, 1], moved[:, 0])
             innov = wrap_angle(road_dir - math.atan2(oy, ox) - self.offset)
-            moved_on_road = np.hypot(moved[:, 0], moved[:, 1]) > 0.5 * chord
+            moved_on_road = np.hypot(moved[:, 0], moved[:, 1]) > 0.5 * chord * scale
             self.offset = wrap_angle(self.offset + np.where(moved_on_road, cfg.reloc_offset_gain * innov, 0.0))
         self.offset = wrap_angle(self.offset + rng.normal(0.0, math.radians(cfg.reloc_offset_sigma_deg), n))
+        if self.scale_free and cfg.reloc_scale_walk > 0:
+            self.log_scale = np.clip(self.log_scale + rng.normal(0.0, cfg.reloc_scale_walk, n), *self._log_range)
         self.logw -= _logsumexp(self.logw)
-        self.driven_m += moved_m
+        self.driven_m += moved_m * math.exp(float(np.sum(np.exp(self.logw) * self.log_scale)))
         if 1.0 / float(np.sum(np.exp(2.0 * self.logw))) < 0.5 * n:
             self._resample()
 
@@ -242,7 +276,7 @@ class RoadParticles:
         cum[-1] = 1.0
         idx = np.searchsorted(cum, (self.rng.random() + np.arange(n)) / n)
         self.edge, self.direction = self.edge[idx], self.direction[idx]
-        self.along, self.offset = self.along[idx], self.offset[idx]
+        self.along, self.offset, self.log_scale = self.along[idx], self.offset[idx], self.log_scale[idx]
         self.logw = np.full(n, -math.log(n))
 
     def located(self, odometry_yaw_rad: float) -> Located | None:
@@ -270,8 +304,12 @@ class RoadParticles:
         off, resultant = math.atan2(sin_m, cos_m), math.hypot(sin_m, cos_m)
         yaw_spread = math.sqrt(max(-2.0 * math.log(max(resultant, 1e-12)), 0.0))
         heading = math.remainder(odometry_yaw_rad + off, 2.0 * math.pi)
+        ls = self.log_scale[inside]
+        ls_mean = float(np.sum(wi * ls))
+        ls_sd = math.sqrt(max(float(np.sum(wi * (ls - ls_mean) ** 2)), 0.0))
         return Located(float(xy[k, 0]), float(xy[k, 1]), heading, off, int(self.edge[k]), int(self.direction[k]),
-                       float(self.along[k]), mass, float(math.sqrt(np.sum(wi * d2))), yaw_spread, self.driven_m)
+                       float(self.along[k]), mass, float(math.sqrt(np.sum(wi * d2))), yaw_spread, self.driven_m,
+                       math.exp(ls_mean), ls_sd)
 
 
 @dataclass(frozen=True)
@@ -315,9 +353,11 @@ class Relocaliser:
     """Feeds :class:`RoadParticles` from an odometry stream of planar poses (x, y, yaw in the odometry's
     frame, metres after the odometry's scale) and says where the vehicle is once it has converged."""
 
-    def __init__(self, road: RoadMap, cfg: FusionConfig, region: Region, seed: int = 0) -> None:
+    def __init__(self, road: RoadMap, cfg: FusionConfig, region: Region, seed: int = 0,
+                 scale_range: tuple[float, float] = (1.0, 1.0)) -> None:
         self.particles = RoadParticles(road, cfg, seed)
         self.region = region
+        self.scale_range = scale_range
         self.cfg = cfg
         self._anchor: tuple[float, float] | None = None  # odometry position at the last filter step
         self._last: tuple[float, float] | None = None
@@ -330,7 +370,7 @@ class Relocaliser:
         """One odometry pose; the converged answer, or None (not yet, or nothing in the region)."""
         if self._anchor is None:
             self._anchor = self._last = (x, y)
-            self.way_points_in_region = self.particles.start(self.region, yaw)
+            self.way_points_in_region = self.particles.start(self.region, yaw, scale_range=self.scale_range)
             log.info("re-localising in a %.0f m region around (%.0f, %.0f): %d particles on %d way-points",
                      self.region.radius_m, self.region.x_m, self.region.y_m, len(self.particles),
                      self.way_points_in_region)
@@ -348,7 +388,8 @@ class Relocaliser:
         # happened to gather the mass on a straight stretch usually dies at the next turn)
         prev = self._held
         same = prev is not None and loc is not None and \
-            math.hypot(loc.x_m - prev.x_m, loc.y_m - prev.y_m) <= moved * 1.5 + self.cfg.reloc_converge_radius_m
+            math.hypot(loc.x_m - prev.x_m, loc.y_m - prev.y_m) <= moved * loc.scale * 1.5 + \
+            self.cfg.reloc_converge_radius_m
         self._held_m = self._held_m + moved if same else 0.0
         self._held = loc
         return loc if loc is not None and self._held_m >= self.cfg.reloc_hold_m else None
@@ -365,9 +406,10 @@ class Search:
         self.active: Relocaliser | None = None
         self.searches = 0
 
-    def begin(self, region: Region) -> None:
-        """Start a search in ``region`` (a new one replaces any running)."""
-        self.active = Relocaliser(self.road, self.cfg, region, self.cfg.reloc_seed + self.searches)
+    def begin(self, region: Region, scale_range: tuple[float, float] = (1.0, 1.0)) -> None:
+        """Start a search in ``region`` (a new one replaces any running); its particles' scales spread over
+        ``scale_range`` (map metres per odometry unit)."""
+        self.active = Relocaliser(self.road, self.cfg, region, self.cfg.reloc_seed + self.searches, scale_range)
         self.searches += 1
 
     def widen_if_stuck(self, x_m: float, y_m: float) -> None:
@@ -375,7 +417,7 @@ class Search:
         its radius (up to ``reloc_max_radius_m``): the vehicle may have left the region."""
         a = self.active
         if a is not None and a.particles.driven_m >= self.cfg.reloc_give_up_m:
-            self.begin(Region(x_m, y_m, min(2.0 * a.region.radius_m, self.cfg.reloc_max_radius_m)))
+            self.begin(Region(x_m, y_m, min(2.0 * a.region.radius_m, self.cfg.reloc_max_radius_m)), a.scale_range)
 
     def lost_region(self, x_m: float, y_m: float, unexplained_m: float) -> Region:
         """Where to look when lost: around the estimate where a road last explained it (``x_m``, ``y_m``), the
@@ -392,6 +434,6 @@ class Search:
         if loc is not None:
             self.active = None
             log.info("re-localised on the road network after %.0f m: (%.1f, %.1f), %.0f%% of the posterior "
-                     "within %.0f m (spread %.1f m)", loc.driven_m, loc.x_m, loc.y_m, 100 * loc.mass,
-                     self.cfg.reloc_converge_radius_m, loc.spread_m)
+                     "within %.0f m (spread %.1f m), scale %.4f ± %.1f%%", loc.driven_m, loc.x_m, loc.y_m,
+                     100 * loc.mass, self.cfg.reloc_converge_radius_m, loc.spread_m, loc.scale, 100 * loc.scale_spread)
         return loc

@@ -457,8 +457,13 @@ def fuse(
     start_region: Annotated[Optional[str], typer.Option("--start-region", help="LAT,LON,RADIUS_M: a cold start "
                                                         "without GPS — the vehicle starts on a road within RADIUS_M "
                                                         "metres of LAT,LON and the odometry's shape finds it on the "
-                                                        "map (issue 17); the odometry must be metric. The estimate "
-                                                        "begins once found.")] = None,
+                                                        "map (issue 17); the odometry is taken as metric unless "
+                                                        "--scale-unknown. The estimate begins once found.")] = None,
+    scale_unknown: Annotated[bool, typer.Option("--scale-unknown", help="With --start-region: the odometry's scale "
+                                                "is not known (a monocular VO, a biased one): the search finds it "
+                                                "with the position, within --scale-range.")] = False,
+    scale_range: Annotated[str, typer.Option("--scale-range", help="LO,HI: with --scale-unknown, the scales (map "
+                                             "metres per odometry unit) searched over, log-uniformly.")] = "0.5,2.0",
     plot_search: Annotated[Optional[Path], typer.Option("--plot-search", help="With --start-region: also draw the "
                                                         "search (PNG): its particles over the map at four moments up "
                                                         "to the vehicle found.")] = None,
@@ -501,7 +506,10 @@ def fuse(
             fmt, frame = OdometryFormat(odometry_format), OdometryFrame(odometry_frame)
         except ValueError as exc:
             raise InputError(f"{exc}; --odometry-format is tum or kitti, --odometry-frame is body or camera") from None
-        cfg = load_fusion_config(config, **({"use_map": False} if no_map else {}))
+        cfg = load_fusion_config(config, **({"use_map": False} if no_map else {}),
+                                 **(_scale_search(scale_range) if scale_unknown else {}))
+        if scale_unknown and start_region is None:
+            _fail("--scale-unknown goes with --start-region (a GPS initialisation measures the scale itself)")
         if wheel is not None and imu is None:
             _fail("--wheel needs --imu (its gyro gives the yaw rate)")
         region = parse_start_region(start_region) if start_region is not None else None
@@ -539,6 +547,17 @@ def _draw_search(inputs, cfg, region: tuple[float, float, float], out: Path) -> 
     shots, found = search_snapshots(road, cfg, reg, planar)
     plot_search(road, reg, shots, found, out)
     console.print(f"search drawn → {out}")
+
+
+def _scale_search(text: str) -> dict[str, float]:
+    """``--scale-range LO,HI`` → the config overrides of a search for the scale, or an InputError."""
+    try:
+        lo, hi = (float(p) for p in text.split(","))
+    except ValueError:
+        raise InputError(f"--scale-range {text!r}: expected LO,HI (two numbers)") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0.0 < lo < hi <= 1e6):
+        raise InputError(f"--scale-range {text!r}: 0 < LO < HI ≤ 1e6 (map metres per odometry unit)")
+    return {"reloc_scale_min": lo, "reloc_scale_max": hi}
 
 
 def parse_start_region(text: str) -> tuple[float, float, float]:
