@@ -285,7 +285,7 @@ class MapFusion(Reanchoring):
         """The odometry factor into frame k."""
         step = self._step(k) if step is None else step
         noise = factors.odometry_noise(self.cfg, step, self.track.gap_frames(k), self.track.nominal_period_s,
-                                       before_init=before_init, scale_sigma=self.scale_sigma)
+                                       before_init=before_init, scale_sigma=self._aligned.relative_sigma)
         return factors.between(k, step, noise)
 
     def _add_frame(self, k: int) -> None:

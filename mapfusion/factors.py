@@ -148,7 +148,8 @@ def odometry_noise(cfg: FusionConfig, step: gtsam.Pose3, gap_frames: float, peri
     """σ of one odometry step. A step across dropped frames is looser in proportion to the frames
     it spans, and one across an outage (over ``outage_s``) is at least ``outage_step_fraction`` of
     its length: a re-initialised odometry guesses the motion it did not see. Before initialisation
-    the step is either loose (``loose_before_init``) or inflated by the scale's σ."""
+    the step is either loose (``loose_before_init``) or inflated by the scale's relative σ
+    (``scale_sigma``: σ / scale)."""
     n = max(1.0, gap_frames)
     tr = step.translation()
     length_m = math.sqrt(tr.dot(tr))  # (np.linalg.norm's own arithmetic, less its overhead)

@@ -144,6 +144,11 @@ class Alignment:
     rot_rad: float
     trans_m: np.ndarray
 
+    @property
+    def relative_sigma(self) -> float:
+        """The scale's σ over the scale: what it makes of a step's length in metres (a mono VO's scale is ~30)."""
+        return self.scale_sigma / self.scale
+
 
 class History(Generic[T]):
     """A list indexed by absolute frame number whose oldest items can be dropped, so a drive of any

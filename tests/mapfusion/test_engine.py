@@ -136,6 +136,32 @@ def test_honest_scale_sigma_counts_independent_windows(seed, wander):
     assert abs(new.scale - float(np.mean(s_t))) <= 3.0 * new.sigma + 0.003 * new.scale
 
 
+@settings(max_examples=4, deadline=None)
+@given(units=st.sampled_from([0.5, 3.0, 30.0]), seed=st.integers(0, 100))
+def test_the_estimate_does_not_depend_on_the_odometrys_units(grid, units, seed):
+    """The same drive reported in metres and in units of 1/``units`` metre (a monocular VO's scale is
+    arbitrary, ~30 for the real ones): the scale found is ``units`` times the other and the estimates are
+    the same. (The initial batch once took the scale's σ, in the odometry's units, for a fraction of a step
+    in metres: thirty times too loose steps at a scale of 30.)"""
+    truth = synthetic_truth("random", n=1500, speed_mps=10.0, seed=seed)
+    T = _poses(truth)
+    gt, gxy = _gps(truth, sigma=1.0, until_s=80.0, seed=seed)
+    # a scale that wanders by ±5% over the drive, so that the scale's σ is not zero
+    wander = 1.02 + 0.05 * np.sin(truth.t_s / 7.0)
+    steps = np.diff(T[:, :3, 3], axis=0, prepend=T[:1, :3, 3]) * wander[:, None]
+    drifting = T.copy()
+    drifting[:, :3, 3] = np.cumsum(steps, axis=0)
+    est = {}
+    for k in (1.0, units):
+        odo = drifting.copy()
+        odo[:, :3, 3] /= k
+        eng = _feed(MapFusion(grid, FusionConfig(use_map=False)), grid, truth.t_s, odo, gt, gxy, sigma=1.0)
+        est[k] = (eng.scale, eng.scale_sigma, _online_xy(eng)[1])
+    (s1, sig1, xy1), (sk, sigk, xyk) = est[1.0], est[units]
+    assert sk == pytest.approx(units * s1, rel=1e-6) and sigk == pytest.approx(units * sig1, rel=1e-6)
+    assert np.nanmax(np.hypot(*(xy1 - xyk).T)) < 1e-3
+
+
 def test_window_counts_are_the_papers():
     cfg = FusionConfig(scale_min_distance_m=20.0, scale_min_speed_kmh=10.0)
     assert window_counts(cfg, 1.0, 10.0) == (math.ceil(20 * 3.6 * 1 / 10), round(math.ceil(20 * 3.6 / 10) * 10))
