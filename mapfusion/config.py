@@ -642,10 +642,10 @@ class FusionConfig:
                                      "GPS places the estimate and no search runs (0: searches regardless of GPS).",
                                      unit="s", min=0.0,
                                      max=86400.0, source="issue 17: a biased fix window leaves the estimate off")
-    reloc_particles_per_m: float = param(4.0, "Particles per metre of road (both directions) in the search region, "
+    reloc_particles_per_m: float = param(10.0, "Particles per metre of road (both directions) in the search region, "
                                          "up to reloc_particles.", unit="1/m", min=0.01, max=1000.0,
-                                         source="issue 17; by measurement (a 1 km region of Helsinki: 0 wrong of "
-                                         "16 with 60,000)")
+                                         source="issue 17; by measurement: kidnapped seeds 1-10 / held-out 11-20, "
+                                         "4 → 10 per m: Map-Fusion ATE 78.2 → 60.6 / 104.0 → 84.6 m")
     reloc_hold_m: float = param(0.0, "A converged cluster counts once it has held this far, moving with the "
                                 "vehicle.", unit="m", min=0.0, max=100000.0,
                                 source="issue 17: 20 kidnapped runs, hold 0 / 50 / 100 m: 12 / 9 / 9 found within "
