@@ -251,8 +251,8 @@ class RoadParticles:
             # compared at one reference scale: a particle whose scale is small makes small errors in metres,
             # and σ's constant part would otherwise favour it whatever the path's shape says
             ref = math.exp(0.5 * sum(self._log_range))
-            sigma = cfg.reloc_sigma_m + cfg.reloc_sigma_per_m * moved_m * ref
-            self.logw += -0.5 * (ex * ex + ey * ey) * (ref * ref) / (scale * scale * sigma * sigma)
+            sigma_ref = cfg.reloc_sigma_m + cfg.reloc_sigma_per_m * moved_m * ref
+            self.logw += -0.5 * (ex * ex + ey * ey) * (ref * ref) / (scale * scale * sigma_ref * sigma_ref)
         else:
             self.logw += -0.5 * (ex * ex + ey * ey) / (sigma * sigma)
         chord = math.hypot(ox, oy)
