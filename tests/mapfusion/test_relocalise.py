@@ -106,16 +106,15 @@ def _rel(ox, oy, oyaw, k):
     return rel
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_a_cold_start_without_gps_begins_where_the_vehicle_is(road, seed):
-    """MapFusion.start_in_region with no GPS: no estimate until the search converges, then one within 5 m of
-    the truth, and the drive tracked on to its end within 25 m (10 m/s, 10 Hz, 1°/100 m heading drift)."""
+def _cold_start(road, seed, length_m, cfg, scale=1.0):
+    """A cold start on a graph route (10 Hz, 1°/100 m heading drift, the odometry's lengths × ``scale``) from a
+    1 km region 300 m off its start: the engine, (frame, error) of its first estimate, the truth's x and y."""
     from mapfusion import MapFusion
 
-    x, y, yaw, _ = graph_route(road, seed, 1200.0)
-    ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, yaw_drift_rad_per_m=math.radians(1.0) / 100, heading_rad=2.0,
-                                     noise_m=0.02)
-    eng = MapFusion(road, FusionConfig(), odometry_rate_hz=10.0)
+    x, y, yaw, _ = graph_route(road, seed, length_m)
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, scale=scale, yaw_drift_rad_per_m=math.radians(1.0) / 100,
+                                     heading_rad=2.0, noise_m=0.02)
+    eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
     a = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi)
     lat, lon = road.projection.to_geo(x[0] + 300.0 * math.cos(a), y[0] + 300.0 * math.sin(a))
     eng.start_in_region(float(lat), float(lon), 1000.0)
@@ -126,6 +125,14 @@ def test_a_cold_start_without_gps_begins_where_the_vehicle_is(road, seed):
         if p is not None and first is None:
             first = (k, math.hypot(p.x() - x[k], p.y() - y[k]))
     eng.finish()
+    return eng, first, x, y
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_cold_start_without_gps_begins_where_the_vehicle_is(road, seed):
+    """MapFusion.start_in_region with no GPS: no estimate until the search converges, then one within 5 m of
+    the truth, and the drive tracked on to its end within 25 m (10 m/s, 10 Hz, 1°/100 m heading drift)."""
+    eng, first, x, y = _cold_start(road, seed, 1200.0, FusionConfig())
     assert first is not None and eng.counters.map_relocalisations == 1
     assert first[1] < 5.0, first
     assert eng.initialised_at == pytest.approx(0.1 * first[0])
@@ -288,23 +295,8 @@ def test_a_search_for_the_scale_finds_the_place_and_the_scale(road, seed):
 def test_a_cold_start_with_an_unknown_scale_takes_the_scale_it_found(road):
     """MapFusion with reloc_scale_min < reloc_scale_max: the estimate begins where the vehicle is, at the
     scale the search found, and follows the drive to its end."""
-    from mapfusion import MapFusion
-
-    seed = 0
-    x, y, yaw, _ = graph_route(road, seed, 1500.0)
-    ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, scale=1.0 / 1.4, yaw_drift_rad_per_m=math.radians(1.0) / 100,
-                                     heading_rad=2.0, noise_m=0.02)
-    eng = MapFusion(road, FusionConfig(reloc_scale_min=0.5, reloc_scale_max=2.0), odometry_rate_hz=10.0)
-    a = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi)
-    lat, lon = road.projection.to_geo(x[0] + 300.0 * math.cos(a), y[0] + 300.0 * math.sin(a))
-    eng.start_in_region(float(lat), float(lon), 1000.0)
-    first = None
-    for k in range(len(x)):
-        eng.add_odometry(0.1 * k, _rel(ox, oy, oyaw, k))
-        p = eng.estimate()
-        if p is not None and first is None:
-            first = (k, math.hypot(p.x() - x[k], p.y() - y[k]))
-    eng.finish()
+    eng, first, x, y = _cold_start(road, 0, 1500.0, FusionConfig(reloc_scale_min=0.5, reloc_scale_max=2.0),
+                                   scale=1.0 / 1.4)
     assert first is not None and first[1] < 10.0, first
     assert eng.scale == pytest.approx(1.4, rel=0.05)
     p = eng.estimate()
