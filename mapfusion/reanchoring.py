@@ -103,9 +103,9 @@ class Reanchoring:
         raw = self.track.raw[-1]
         rot = loc.yaw_rad - raw.rotation().yaw()
         c, s, (px, py, _) = math.cos(rot), math.sin(rot), raw.translation()
-        k, c, s = loc.scale, c * loc.scale, s * loc.scale
-        sigma = max(self.cfg.reloc_scale_sigma, loc.scale_spread) * k
-        self._begin(Alignment(k, sigma, rot, np.array([loc.x_m - (c * px - s * py), loc.y_m - (s * px + c * py)])),
+        scale, c, s = loc.scale, c * loc.scale, s * loc.scale
+        sigma = max(self.cfg.reloc_scale_sigma, loc.scale_spread) * scale
+        self._begin(Alignment(scale, sigma, rot, np.array([loc.x_m - (c * px - s * py), loc.y_m - (s * px + c * py)])),
                     anchor=len(self.track) - 1)
         self.counters.map_relocalisations += 1
         self.relocalised_at.append((self.track.t[-1], loc.driven_m))

@@ -98,12 +98,17 @@ class RoadParticles:
         self.along = np.zeros(0)
         self.offset = np.zeros(0)
         self.log_scale = np.zeros(0)
-        self.scale_free = False  # the scale is a state of the search (a range was given)
+        self._log_range = (0.0, 0.0)  # the logs of the scales searched over (equal: the scale is known)
         self.logw = np.zeros(0)
         self.driven_m = 0.0
 
     def __len__(self) -> int:
         return len(self.edge)
+
+    @property
+    def scale_free(self) -> bool:
+        """The scale is a state of the search (a range was given)."""
+        return self._log_range[1] > self._log_range[0]
 
     def start(self, region: Region, odometry_yaw_rad: float, n: int | None = None,
               scale_range: tuple[float, float] = (1.0, 1.0)) -> int:
@@ -130,7 +135,6 @@ class RoadParticles:
         self.along = road.s_m[pick].astype(np.float64)
         yaw = self._heading(self.edge, self.along, d)
         self.offset = wrap_angle(yaw - odometry_yaw_rad + self.rng.normal(0.0, math.radians(2.0), n))
-        self.scale_free = hi > lo
         self._log_range = (lo, hi)
         self.log_scale = self.rng.uniform(lo, hi, n) if self.scale_free else np.full(n, lo)
         self.logw = np.full(n, -math.log(n))
@@ -153,7 +157,7 @@ class RoadParticles:
         self.direction = np.full(n, direction, dtype=np.int64)
         self.along = np.full(n, float(along_m))
         self.offset, self.logw, self.driven_m = np.zeros(n), np.full(n, -math.log(n)), 0.0
-        self.log_scale, self.scale_free = np.zeros(n), False
+        self.log_scale, self._log_range = np.zeros(n), (0.0, 0.0)
         self._drive(np.full(n, float(distance_m)), np.tile(np.asarray(target_xy, dtype=float), (n, 1)), sigma_m)
         xy = self.positions()
         i = int(np.argmin(np.hypot(xy[:, 0] - target_xy[0], xy[:, 1] - target_xy[1])))
@@ -235,7 +239,7 @@ class RoadParticles:
             return
         cfg, rng, n = self.cfg, self.rng, len(self)
         before = self.positions()
-        scale = np.exp(self.log_scale)
+        scale = np.exp(self.log_scale) if self.scale_free else 1.0  # (a known scale: the odometry's metres)
         c, s = np.cos(self.offset) * scale, np.sin(self.offset) * scale
         ox, oy = chord_odo_xy
         expected = np.column_stack([c * ox - s * oy, s * ox + c * oy])  # the odometry's displacement, per particle
@@ -265,7 +269,8 @@ class RoadParticles:
         if self.scale_free and cfg.reloc_scale_walk > 0:
             self.log_scale = np.clip(self.log_scale + rng.normal(0.0, cfg.reloc_scale_walk, n), *self._log_range)
         self.logw -= _logsumexp(self.logw)
-        self.driven_m += moved_m * math.exp(float(np.sum(np.exp(self.logw) * self.log_scale)))
+        self.driven_m += moved_m * (math.exp(float(np.sum(np.exp(self.logw) * self.log_scale))) if self.scale_free
+                                    else 1.0)
         if 1.0 / float(np.sum(np.exp(2.0 * self.logw))) < 0.5 * n:
             self._resample()
 
@@ -390,7 +395,7 @@ class Relocaliser:
         same = prev is not None and loc is not None and \
             math.hypot(loc.x_m - prev.x_m, loc.y_m - prev.y_m) <= moved * loc.scale * 1.5 + \
             self.cfg.reloc_converge_radius_m
-        self._held_m = self._held_m + moved if same else 0.0
+        self._held_m = self._held_m + moved * loc.scale if same and loc is not None else 0.0  # (metres)
         self._held = loc
         return loc if loc is not None and self._held_m >= self.cfg.reloc_hold_m else None
 
