@@ -617,6 +617,12 @@ class FusionConfig:
     reloc_offset_gain: float = param(0.2, "Gain with which a particle's heading offset follows each step's heading "
                                      "innovation (the odometry's yaw drift).", unit="1", min=0.0, max=1.0,
                                      source="issue 17; by measurement")
+    reloc_uturn_probability: float = param(0.0, "Probability that a particle on a two-way road turns back in one step "
+                                           "(0: only at a dead end; the road fixes' particles take "
+                                           "road_fix_uturn_probability).", min=0.0, max=1.0, source="issue 16")
+    reloc_offset_max_deg: float = param(180.0, "Largest heading innovation a particle's offset follows in one step "
+                                        "(180: any; the road fixes' particles take road_fix_offset_max_deg).",
+                                        unit="deg", min=0.0, max=180.0, source="issue 16")
     reloc_offset_sigma_deg: float = param(0.3, "σ of the random walk of a particle's heading offset per step.",
                                           unit="deg", min=0.0, max=90.0, source="issue 22's fitted VO yaw drift")
     reloc_converge_radius_m: float = param(25.0, "Radius of the disc whose posterior mass decides convergence.",
@@ -668,6 +674,52 @@ class FusionConfig:
                                        unit="m/s", min=0.0, max=100.0, source="issue 17: city speeds")
     reloc_seed: int = param(0, "Seed of the re-localisation's random numbers (runs are reproducible).", min=0,
                             max=2**31 - 1, source="reproducibility")
+    road_fixes: bool = param(False, "While GPS is silent, road-network particles (the re-localisation's, the "
+                             "odometry's scale a state of each) follow the vehicle from the estimate, and their "
+                             "confident position enters the graph as a fix: the map's own answer to where the "
+                             "vehicle is, from the odometry's shape over many junctions, independent of the "
+                             "estimate's single road association.", source="issue 16 items 3-4, issue 17 (Lost!)")
+    road_fix_after_gps_s: float = param(2.0, "The particles start when no GPS fix was used for this long; a used fix "
+                                        "stops them.", unit="s", min=0.0, exclusive_min=True, max=86400.0,
+                                        source="GPS places the estimate better while it comes")
+    road_fix_radius_m: float = param(50.0, "Radius of the region around the estimate the particles start in (at "
+                                     "least 3 × the estimate's positional σ).", unit="m", min=1.0, max=100000.0,
+                                     source="issue 16; by measurement")
+    road_fix_scale_factor: float = param(1.3, "The particles' scales start within the estimate's scale ×/÷ this "
+                                         "(a monocular VO's scale wanders by tens of percent).", min=1.0, max=10.0,
+                                         source="issue 16 item 3; real TrianFlow scale 25-31 on KITTI 00")
+    road_fix_every_m: float = param(5.0, "Driving between two fixes.", unit="m", min=0.5, max=10000.0,
+                                    source="issue 16; by measurement")
+    road_fix_min_mass: float = param(0.8, "Posterior mass within road_fix_cluster_m a fix needs.", min=0.0,
+                                     exclusive_min=True, max=1.0, source="issue 16; as reloc_converge_mass")
+    road_fix_cluster_m: float = param(25.0, "Radius of the disc whose mass decides a fix.", unit="m", min=0.1,
+                                      max=10000.0, source="as reloc_converge_radius_m")
+    road_fix_restart_m: float = param(300.0, "Particles that gave no confident answer over this much driving start "
+                                      "again around the estimate (a posterior spread for long gathers again on "
+                                      "look-alike roads far away).", unit="m", min=1.0, max=1e6,
+                                      source="issue 16; real TrianFlow on KITTI 01")
+    road_fix_sigma_m: float = param(3.0, "Smallest σ of a fix (per axis; the cluster's spread when larger).",
+                                    unit="m", min=0.01, max=1000.0, source="issue 16; by measurement")
+    road_fix_offset_max_deg: float = param(5.0, "Largest heading innovation the road fixes' particles' offsets follow "
+                                           "in one step: a slow drift is followed, a turn the road did not make "
+                                           "(the vehicle turned where a particle went straight) is not absorbed.",
+                                           unit="deg", min=0.0, max=180.0,
+                                           source="issue 16: Helsinki seed 5 (90° absorbed in five steps)")
+    road_fix_uturn_probability: float = param(0.02, "Probability that a road fix particle on a two-way road turns "
+                                              "back in one step: vehicles turn back (SUMO's routes at dead ends and "
+                                              "junctions), and particles that cannot are all wrong after it.",
+                                              min=0.0, max=1.0, source="issue 16: Helsinki seed 5 turns back at "
+                                              "253 s")
+    road_fix_scale_gain: float = param(0.02, "Each road fix moves the engine's odometry scale this fraction of the way "
+                                       "(in log) to the fix's cluster's scale: the map keeps observing the scale "
+                                       "after GPS ends (0: the scale GPS measured stays).", min=0.0, max=1.0,
+                                       source="issue 16 item 3")
+    road_fix_drift: float = param(0.1, "The estimate's σ for the gate grows by this fraction of the distance driven "
+                                  "since the last fix (GPS's or a road fix) when its marginal says less.", min=0.0,
+                                  max=10.0, source="issue 16; real TrianFlow drifts 10-12% (KITTI t_err)")
+    road_fix_gate_sigma: float = param(5.0, "A fix farther from the estimate than this × the combined σ (the "
+                                       "estimate's, the fix's) is not added (0: no gate).", min=0.0, max=1000.0,
+                                       source="issue 16: never make a drive worse")
     relinearize_threshold: float = param(
         0.01,
         "ISAM2's relinearisation threshold (tangent-space step).",

@@ -36,6 +36,7 @@ from .smoother import Smoother
 from .stream import OnFinal, Release
 from .reanchoring import Reanchoring
 from .track import Alignment, JumpGuard, planar_of, track_for
+from .tracking import RoadFixes, RoadFixing
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +66,7 @@ def _finite_pose(p: gtsam.Pose3) -> bool:
     return bool(np.all(np.isfinite(p.matrix())))
 
 
-class MapFusion(Reanchoring):
+class MapFusion(Reanchoring, RoadFixing):
     """The engine: feed it odometry and GPS in time order, read estimates back.
 
     ``add_odometry(t, relative_pose)``: the motion since the previous frame, body frame (x
@@ -98,6 +99,7 @@ class MapFusion(Reanchoring):
         self._last_cov_check_t = -math.inf
         self._pos_sigma = self._lat_sigma = 0.0  # the estimate's positional σ: largest, across the vehicle
         self._init_reanchoring()
+        self._road_fixes = RoadFixes(road, self.cfg)  # (inert unless road_fixes and use_map)
 
     # ------------------------------------------------------------------ public API
     @property
@@ -114,10 +116,8 @@ class MapFusion(Reanchoring):
     gyro_bias_radps = property(lambda self: self._motion.wg.bias_radps, doc="The gyro's estimated yaw-rate bias.")
     position_sigma_m = property(lambda self: self._pos_sigma, doc="The latest marginal's largest positional σ (m).")
 
-    @property
-    def scale_windows(self) -> float | None:
-        """The paper's median-of-windows scale at initialisation."""
-        return None if self.initialiser.windows is None else self.initialiser.windows.scale
+    scale_windows = property(lambda self: None if self.initialiser.windows is None else self.initialiser.windows.scale,
+                             doc="The paper's median-of-windows scale at initialisation.")
 
     @property
     def scale_samples(self) -> int:
@@ -299,6 +299,7 @@ class MapFusion(Reanchoring):
         self._note_outage(k, step)
         sm.insert(k, pred)
         prior_added = self._map_prior(k, pred, step) if self.cfg.use_map else False
+        prior_added = self._road_fix(k, pred) or prior_added
         track.online[k] = pred
         self._since_update += 1
         self._maybe_odometry_prior(k, pred)
@@ -316,8 +317,7 @@ class MapFusion(Reanchoring):
         m, prior = self._association.prior(k, pred, step, dt, self._pos_sigma, self._lat_sigma)
         if self._association.lost:
             self.lost_s += dt
-        if m is not None:
-            self.matched_way[k] = m.way_id
+        self.matched_way[k] = m.way_id if m is not None else -1
         if prior is None:
             return False
         self._sm.add(prior)
@@ -354,6 +354,7 @@ class MapFusion(Reanchoring):
         if verdict is Verdict.accept:
             self._sm.add(factors.gps_factor(self.cfg.state, k, x, y, alt, sigma))
             self.counters.gps_used += 1
+            self._road_fixes.gps_used(self.track.t[k])
             return
         self.counters.gps_rejected_gate += 1
         if verdict is Verdict.relocalise:

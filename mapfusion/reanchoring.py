@@ -23,6 +23,7 @@ from .relocalise import Located, Region, RoadParticles, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
 from .track import Alignment, JumpGuard, Track, level, planar_of, spread_back
+from .tracking import RoadFixes
 
 log = logging.getLogger(__name__)
 
@@ -40,6 +41,7 @@ class Reanchoring:
     _association: MapAssociation
     _gate: GpsGate
     _search: Search
+    _road_fixes: RoadFixes
     _jumps: JumpGuard
     _checked_fix_t: float
     initialiser: Initialiser
@@ -61,6 +63,7 @@ class Reanchoring:
         forgotten: the path every re-anchoring takes (GPS's and the map's)."""
         assert self._smoother is not None
         self._smoother.restart_from(k, pose, noise, self._step)
+        self._road_fixes.particles = None  # (they start again around the re-anchored estimate)
         self._pos_sigma = self._lat_sigma = sigma_m
         self._association.reset()
 

@@ -93,6 +93,7 @@ class RoadParticles:
         self._base = np.concatenate(([0.0], np.cumsum(lengths + 1.0)))[:-1]  # (a 1 m gap keeps edges apart)
         self._glob = road.s_m[:n_pts].astype(np.float64) + self._base[road.edge[:n_pts]]
         self._exits = _exits(road)
+        self._two_way = np.array([road.ways[int(w)].travel == 0 for w in road.edge_way_index], dtype=bool)
         self.edge = np.zeros(0, dtype=np.int64)
         self.direction = np.zeros(0, dtype=np.int64)
         self.along = np.zeros(0)
@@ -101,6 +102,7 @@ class RoadParticles:
         self._log_range = (0.0, 0.0)  # the logs of the scales searched over (equal: the scale is known)
         self.logw = np.zeros(0)
         self.driven_m = 0.0
+        self.log_evidence = 0.0  # the last step's (see step)
 
     def __len__(self) -> int:
         return len(self.edge)
@@ -245,6 +247,9 @@ class RoadParticles:
         expected = np.column_stack([c * ox - s * oy, s * ox + c * oy])  # the odometry's displacement, per particle
         metres = moved_m * scale
         sigma = cfg.reloc_sigma_m + cfg.reloc_sigma_per_m * metres
+        if cfg.reloc_uturn_probability > 0:  # (the vehicle turned back where it may: a two-way road)
+            back = (rng.random(n) < cfg.reloc_uturn_probability) & self._two_way[self.edge]
+            self.direction = np.where(back, -self.direction, self.direction)
         noise = 1.0 + rng.normal(0.0, cfg.reloc_scale_sigma, n)
         self._drive(np.maximum(metres * noise + rng.normal(0.0, cfg.reloc_along_sigma_m, n), 0.0), before + expected,
                     float(np.median(sigma)))
@@ -256,13 +261,20 @@ class RoadParticles:
             # and σ's constant part would otherwise favour it whatever the path's shape says
             ref = math.exp(0.5 * sum(self._log_range))
             sigma_ref = cfg.reloc_sigma_m + cfg.reloc_sigma_per_m * moved_m * ref
-            self.logw += -0.5 * (ex * ex + ey * ey) * (ref * ref) / (scale * scale * sigma_ref * sigma_ref)
+            loglik = -0.5 * (ex * ex + ey * ey) * (ref * ref) / (scale * scale * sigma_ref * sigma_ref)
         else:
-            self.logw += -0.5 * (ex * ex + ey * ey) / (sigma * sigma)
+            loglik = -0.5 * (ex * ex + ey * ey) / (sigma * sigma)
+        # the step's evidence: how well the posterior before it predicted the odometry's motion (log of the
+        # weighted mean likelihood; -0.5 k² where every particle is k σ off)
+        self.log_evidence = _logsumexp(self.logw + loglik)
+        self.logw += loglik
         chord = math.hypot(ox, oy)
         if chord > 1.0:  # the offset follows the odometry's heading drift
             road_dir = np.arctan2(moved[:, 1], moved[:, 0])
             innov = wrap_angle(road_dir - math.atan2(oy, ox) - self.offset)
+            if cfg.reloc_offset_max_deg < 180.0:  # a turn the road did not make is a mismatch, not a drift
+                lim = math.radians(cfg.reloc_offset_max_deg)
+                innov = np.clip(innov, -lim, lim)
             moved_on_road = np.hypot(moved[:, 0], moved[:, 1]) > 0.5 * chord * scale
             self.offset = wrap_angle(self.offset + np.where(moved_on_road, cfg.reloc_offset_gain * innov, 0.0))
         self.offset = wrap_angle(self.offset + rng.normal(0.0, math.radians(cfg.reloc_offset_sigma_deg), n))

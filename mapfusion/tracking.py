@@ -1,0 +1,177 @@
+"""Road fixes (``road_fixes``, issues 16 and 17): while GPS is silent, the re-localisation's road-network
+particles follow the vehicle from where the estimate is, and their confident answer enters the graph as
+a position fix.
+
+The factor graph follows one road association at a time; a wrong one, or an odometry whose scale
+wanders (a monocular VO: tens of percent), takes it off the network, and the map's priors then come
+from wrong roads. The particles keep many places and scales at once, each weighed by how well the
+odometry's shape since the start fits the roads it would have driven (:class:`~mapfusion.relocalise.
+RoadParticles`): their answer does not depend on the estimate, so it can pull a lost estimate back.
+They start on the roads within ``road_fix_radius_m`` (at least 3 σ) of the estimate when no GPS fix
+was used for ``road_fix_after_gps_s``, their scales log-uniform within the estimate's scale ×/÷
+``road_fix_scale_factor`` and walking (``reloc_scale_walk``) — the map observes the scale as it
+observes the place. Every ``road_fix_every_m`` of driving, when one disc of ``road_fix_cluster_m``
+holds ``road_fix_min_mass`` of the posterior, its pose is a fix: σ its spread (at least
+``road_fix_sigma_m``; Gaussian: under the map priors' robust kernel a fix far from a lost estimate
+would be too weak to pull it back, and the posterior's mass already weighed the roads), and not added
+when it lies farther from the estimate than ``road_fix_gate_sigma`` × the combined σ (0: never).
+Particles that give no confident answer over ``road_fix_restart_m`` start again around the estimate: a
+posterior spread for long gathers again on look-alike roads far away. A used GPS fix stops them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+
+import gtsam
+import numpy as np
+
+from . import factors
+from .config import FusionConfig
+from .counters import Counters
+from .relocalise import Located, Region, RoadParticles
+from .roadmap import RoadMap
+from .smoother import Smoother
+from .track import Alignment, Track, planar_of
+
+log = logging.getLogger(__name__)
+
+__all__ = ["RoadFixes", "RoadFixing"]
+
+
+class RoadFixes:
+    """The particles that follow the vehicle while GPS is silent, and the fixes they give."""
+
+    def __init__(self, road: RoadMap, cfg: FusionConfig) -> None:
+        self.road, self.cfg = road, cfg
+        self.enabled = cfg.road_fixes and cfg.use_map
+        # the particles' own view: no distance before an answer (they start where the vehicle is), the fix's disc
+        self._pcfg = dataclasses.replace(cfg, reloc_min_distance_m=0.0, reloc_converge_radius_m=cfg.road_fix_cluster_m,
+                                         reloc_converge_mass=cfg.road_fix_min_mass,
+                                         reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
+                                         reloc_uturn_probability=cfg.road_fix_uturn_probability)
+        self.particles: RoadParticles | None = None  # the filter while it runs
+        self._filter: RoadParticles | None = None
+        self.last_gps_t = -math.inf
+        self.starts = 0
+        self.added = 0
+        self.gated = 0
+        self.last: Located | None = None  # the last answer the particles gave (added or gated)
+        self._anchor = (0.0, 0.0)  # odometry position (its own units) at the last particle step
+        self._last_xy = (0.0, 0.0)
+        self._moved = 0.0  # odometry distance since that step, its own units
+        self._since_fix_m = 0.0
+        self._unsure_m = 0.0  # driving since the particles last gave a confident answer (or started)
+        self._unfixed_m = 0.0  # driving since the reference below
+        self._ref = (0.0, 0.0, 0.0, 0.0)  # the last fix added and the estimate then, or the start's estimate twice
+        self._ref_pending = False  # the reference's estimate is taken at the next frame (after the fix's update)
+        self._ref_slack_m = 0.0  # how far from the reference an answer may lie besides drift (the start's radius)
+
+    def gps_used(self, t: float) -> None:
+        """A GPS fix entered the graph: it places the estimate, the particles stop."""
+        self.last_gps_t = t
+        self.particles = None
+        self._unfixed_m = 0.0
+
+    def step(self, k: int, t: float, raw_xy_yaw: tuple[float, float, float], scale: float, pred: gtsam.Pose3,
+             sigma_m: float) -> gtsam.NonlinearFactor | None:
+        """Frame k at time t: the odometry's raw planar pose (its own units and frame), the estimate's scale
+        (metres per odometry unit), the predicted pose and its positional σ (m). Returns a fix on frame k, or
+        None."""
+        cfg = self.cfg
+        silent = t - self.last_gps_t >= cfg.road_fix_after_gps_s
+        if not (self.enabled and silent and math.isfinite(scale) and scale > 0):
+            return None
+        x, y, yaw = raw_xy_yaw
+        if self._ref_pending:  # the estimate the last fix moved: this frame's prediction starts from it
+            self._ref, self._ref_pending = (self._ref[0], self._ref[1], pred.x(), pred.y()), False
+        if self.particles is None:
+            self._start(x, y, yaw, scale, pred, sigma_m)
+            return None
+        if len(self.particles) == 0:  # no road in the region: start again from the next frame's estimate
+            self.particles = None
+            return None
+        self._moved += math.hypot(x - self._last_xy[0], y - self._last_xy[1])
+        self._last_xy = (x, y)
+        if self._moved * scale < cfg.reloc_step_m:
+            return None
+        moved, chord = self._moved, np.array([x - self._anchor[0], y - self._anchor[1]])
+        self._anchor, self._moved = (x, y), 0.0
+        self.particles.step(moved, chord)
+        self._since_fix_m += moved * scale
+        self._unfixed_m += moved * scale
+        if self._since_fix_m < cfg.road_fix_every_m:
+            return None
+        loc = self.particles.located(yaw)
+        self.last = loc
+        sigma = max(loc.spread_m, cfg.road_fix_sigma_m) if loc is not None else math.inf
+        # continuity: since the last fix that entered the graph (or the particles' start, whose region the answer
+        # may lie anywhere in), the answer has moved as the estimate has, within what the odometry may have
+        # drifted — a posterior that jumps to another road, or runs off where the vehicle turned, is not a fix
+        gated = False
+        if loc is not None and cfg.road_fix_gate_sigma > 0:
+            fx, fy, px, py = self._ref
+            ex, ey = loc.x_m - (fx + pred.x() - px), loc.y_m - (fy + pred.y() - py)
+            tolerance = self._ref_slack_m + cfg.road_fix_gate_sigma * math.hypot(sigma, cfg.road_fix_drift *
+                                                                                 self._unfixed_m)
+            gated = math.hypot(ex, ey) > tolerance
+        if loc is None or gated:
+            self.gated += gated
+            self._unsure_m += self._since_fix_m
+            self._since_fix_m = 0.0
+            if self._unsure_m >= cfg.road_fix_restart_m:  # no fix for too long: start again around the estimate
+                self.particles = None
+            return None
+        self._since_fix_m = self._unsure_m = self._unfixed_m = self._ref_slack_m = 0.0
+        self._ref, self._ref_pending = (loc.x_m, loc.y_m, pred.x(), pred.y()), True
+        self.added += 1
+        return factors.position_fix(k, loc.x_m, loc.y_m, sigma)
+
+    def _start(self, x: float, y: float, yaw: float, scale: float, pred: gtsam.Pose3, sigma_m: float) -> None:
+        cfg = self.cfg
+        if self._filter is None:  # (one filter, started afresh each time: its exits table is built once)
+            self._filter = RoadParticles(self.road, self._pcfg, cfg.reloc_seed)
+        self.particles = self._filter
+        f = cfg.road_fix_scale_factor
+        # around the estimate, as far as it may be off: its marginal's 3 σ, or 3 × what the odometry may have
+        # drifted since the last fix (a restart after a long stretch without one)
+        radius = max(cfg.road_fix_radius_m, 3.0 * sigma_m, 3.0 * cfg.road_fix_drift * self._unfixed_m)
+        self.particles.start(Region(pred.x(), pred.y(), radius), yaw, scale_range=(scale / f, scale * f))
+        self.starts += 1
+        self._anchor = self._last_xy = (x, y)
+        self._moved = self._since_fix_m = self._unsure_m = 0.0
+        self._ref, self._ref_slack_m, self._ref_pending = (pred.x(), pred.y(), pred.x(), pred.y()), radius, False
+        log.info("GPS silent: road particles follow the vehicle from (%.0f, %.0f), %.0f m around, %d particles",
+                 pred.x(), pred.y(), radius, len(self.particles))
+
+
+class RoadFixing:
+    """The engine's side of the road fixes: mixed into MapFusion, whose state it reads."""
+
+    cfg: FusionConfig
+    track: Track
+    counters: Counters
+    alignment: Alignment | None
+    _road_fixes: RoadFixes
+    _pos_sigma: float
+    _smoother: Smoother | None
+
+    def _road_fix(self, k: int, pred: gtsam.Pose3) -> bool:
+        """The road particles' fix on frame k while GPS is silent; True if added. Each fix also moves the
+        odometry's scale ``road_fix_scale_gain`` of the way (in log) to the fix's (the map observes the scale)."""
+        rf = self._road_fixes
+        if not rf.enabled:
+            return False
+        assert self.alignment is not None and self._smoother is not None
+        fix = rf.step(k, self.track.t[k], planar_of(self.track.raw[k]), self.alignment.scale, pred, self._pos_sigma)
+        self.counters.road_fixes, self.counters.road_fixes_gated = rf.added, rf.gated
+        if fix is None:
+            return False
+        self._smoother.add(fix)
+        loc, gain = rf.last, self.cfg.road_fix_scale_gain
+        if loc is not None and gain > 0:
+            scale = math.exp((1.0 - gain) * math.log(self.alignment.scale) + gain * math.log(loc.scale))
+            self.alignment = dataclasses.replace(self.alignment, scale=scale)
+        return True
