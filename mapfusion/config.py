@@ -698,6 +698,10 @@ class FusionConfig:
                                       "again around the estimate (a posterior spread for long gathers again on "
                                       "look-alike roads far away).", unit="m", min=1.0, max=1e6,
                                       source="issue 16; real TrianFlow on KITTI 01")
+    road_fix_hold_m: float = param(50.0, "A new answer (after a start, or after a step without one) is a fix only "
+                                   "once it has been confident and continuous over this much driving.", unit="m",
+                                   min=0.0, max=100000.0,
+                                   source="issue 16: Helsinki rain seed 2 (one answer 190 m off after a restart)")
     road_fix_sigma_m: float = param(3.0, "Smallest σ of a fix (per axis; the cluster's spread when larger).",
                                     unit="m", min=0.01, max=1000.0, source="issue 16; by measurement")
     road_fix_offset_max_deg: float = param(5.0, "Largest heading innovation the road fixes' particles' offsets follow "

@@ -64,7 +64,9 @@ class RoadFixes:
         self._moved = 0.0  # odometry distance since that step, its own units
         self._since_fix_m = 0.0
         self._unsure_m = 0.0  # driving since the particles last gave a confident answer (or started)
-        self._unfixed_m = 0.0  # driving since the reference below
+        self._unfixed_m = 0.0  # driving since the last fix (GPS's or a road fix)
+        self._since_ref_m = 0.0  # driving since the reference below
+        self._held_m = 0.0  # driving over which the answer has been confident and continuous
         self._ref = (0.0, 0.0, 0.0, 0.0)  # the last fix added and the estimate then, or the start's estimate twice
         self._ref_pending = False  # the reference's estimate is taken at the next frame (after the fix's update)
         self._ref_slack_m = 0.0  # how far from the reference an answer may lie besides drift (the start's radius)
@@ -102,6 +104,7 @@ class RoadFixes:
         self.particles.step(moved, chord)
         self._since_fix_m += moved * scale
         self._unfixed_m += moved * scale
+        self._since_ref_m += moved * scale
         if self._since_fix_m < cfg.road_fix_every_m:
             return None
         loc = self.particles.located(yaw)
@@ -115,16 +118,21 @@ class RoadFixes:
             fx, fy, px, py = self._ref
             ex, ey = loc.x_m - (fx + pred.x() - px), loc.y_m - (fy + pred.y() - py)
             tolerance = self._ref_slack_m + cfg.road_fix_gate_sigma * math.hypot(sigma, cfg.road_fix_drift *
-                                                                                 self._unfixed_m)
+                                                                                 self._since_ref_m)
             gated = math.hypot(ex, ey) > tolerance
         if loc is None or gated:
             self.gated += gated
             self._unsure_m += self._since_fix_m
-            self._since_fix_m = 0.0
+            self._since_fix_m = self._held_m = 0.0
             if self._unsure_m >= cfg.road_fix_restart_m:  # no fix for too long: start again around the estimate
                 self.particles = None
             return None
-        self._since_fix_m = self._unsure_m = self._unfixed_m = self._ref_slack_m = 0.0
+        held, self._held_m = self._held_m, self._held_m + self._since_fix_m
+        self._since_fix_m = self._unsure_m = self._since_ref_m = self._ref_slack_m = 0.0
+        if held < cfg.road_fix_hold_m:  # a new answer holds, moving as the estimate does, before it is a fix
+            self._ref, self._ref_pending = (loc.x_m, loc.y_m, pred.x(), pred.y()), False
+            return None
+        self._unfixed_m = 0.0
         self._ref, self._ref_pending = (loc.x_m, loc.y_m, pred.x(), pred.y()), True
         self.added += 1
         return factors.position_fix(k, loc.x_m, loc.y_m, sigma)
@@ -141,7 +149,7 @@ class RoadFixes:
         self.particles.start(Region(pred.x(), pred.y(), radius), yaw, scale_range=(scale / f, scale * f))
         self.starts += 1
         self._anchor = self._last_xy = (x, y)
-        self._moved = self._since_fix_m = self._unsure_m = 0.0
+        self._moved = self._since_fix_m = self._unsure_m = self._since_ref_m = self._held_m = 0.0
         self._ref, self._ref_slack_m, self._ref_pending = (pred.x(), pred.y(), pred.x(), pred.y()), radius, False
         log.info("GPS silent: road particles follow the vehicle from (%.0f, %.0f), %.0f m around, %d particles",
                  pred.x(), pred.y(), radius, len(self.particles))
