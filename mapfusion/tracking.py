@@ -14,9 +14,12 @@ observes the place. Every ``road_fix_every_m`` of driving, when one disc of ``ro
 holds ``road_fix_min_mass`` of the posterior, its pose is a fix: σ its spread (at least
 ``road_fix_sigma_m``; Gaussian: under the map priors' robust kernel a fix far from a lost estimate
 would be too weak to pull it back, and the posterior's mass already weighed the roads), and not added
-when it lies farther from the estimate than ``road_fix_gate_sigma`` × the combined σ (0: never).
-Particles that give no confident answer over ``road_fix_restart_m`` start again around the estimate: a
-posterior spread for long gathers again on look-alike roads far away. A used GPS fix stops them.
+unless it moved as the estimate did since the last one (``road_fix_gate_sigma``, ``road_fix_drift``), and
+not while the estimate lies on a road within ``road_fix_agree_m`` of it (a right estimate is not pulled
+to the particles' own errors). A new answer (after a start, or a step without one) must first hold,
+confident and continuous, over ``road_fix_hold_m``. Particles that give no confident answer over
+``road_fix_restart_m`` start again around the estimate: a posterior spread for long gathers again on
+look-alike roads far away. A used GPS fix stops them.
 """
 
 from __future__ import annotations
@@ -133,9 +136,22 @@ class RoadFixes:
             self._ref, self._ref_pending = (loc.x_m, loc.y_m, pred.x(), pred.y()), False
             return None
         self._unfixed_m = 0.0
-        self._ref, self._ref_pending = (loc.x_m, loc.y_m, pred.x(), pred.y()), True
+        agree = self._agrees(loc, pred)
+        self._ref, self._ref_pending = (loc.x_m, loc.y_m, pred.x(), pred.y()), not agree
+        if agree:
+            return None
         self.added += 1
         return factors.position_fix(k, loc.x_m, loc.y_m, sigma)
+
+    def _agrees(self, loc: Located, pred: gtsam.Pose3) -> bool:
+        """The estimate is on a road (within its width, at most prior_max_angle_deg off its heading) within
+        ``road_fix_agree_m`` of the answer: a fix would only pull a right estimate to the particles' own errors
+        (their place on the centre line, their spread along the road)."""
+        cfg = self.cfg
+        if math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) > cfg.road_fix_agree_m:
+            return False
+        m = self.road.match(pred.x(), pred.y(), pred.rotation().yaw(), cfg.search_radius_m, cfg.angle_weight_m_per_deg)
+        return m is not None and m.lateral_m <= m.lanes * cfg.lane_width_m and m.angle_deg <= cfg.prior_max_angle_deg
 
     def _start(self, x: float, y: float, yaw: float, scale: float, pred: gtsam.Pose3, sigma_m: float) -> None:
         cfg = self.cfg
