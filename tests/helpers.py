@@ -184,3 +184,16 @@ def drifting_odometry(x, y, yaw, seed: int, scale: float = 1.0, yaw_drift_rad_pe
     oy = np.concatenate(([0.0], np.cumsum(step * np.sin(head))))
     oyaw = np.concatenate(([heading_rad], head))
     return ox, oy, oyaw
+
+
+def odometry_step(ox, oy, oyaw, k: int) -> np.ndarray:
+    """The odometry's relative motion into step k (of :func:`drifting_odometry`'s path) as a 4×4 body-frame
+    pose; the identity for k = 0."""
+    if k == 0:
+        return np.eye(4)
+    c0, s0 = math.cos(oyaw[k - 1]), math.sin(oyaw[k - 1])
+    dx, dy, dyaw = ox[k] - ox[k - 1], oy[k] - oy[k - 1], oyaw[k] - oyaw[k - 1]
+    rel = np.eye(4)
+    rel[:2, :2] = [[math.cos(dyaw), -math.sin(dyaw)], [math.sin(dyaw), math.cos(dyaw)]]
+    rel[0, 3], rel[1, 3] = c0 * dx + s0 * dy, -s0 * dx + c0 * dy
+    return rel

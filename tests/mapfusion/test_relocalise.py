@@ -14,7 +14,7 @@ from mapfusion import FusionConfig, RoadMap
 from mapfusion.config import OutageStep
 from mapfusion.relocalise import Region, Relocaliser, RoadParticles
 from mapfusion.roadmap import can_drive
-from tests.helpers import MAPS, drifting_odometry, graph_route
+from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
 CFG = FusionConfig()
 
@@ -94,18 +94,6 @@ def test_the_same_seed_gives_the_same_answer(road):
     assert _relocalise(road, 3, 500.0) == _relocalise(road, 3, 500.0)
 
 
-def _rel(ox, oy, oyaw, k):
-    """The odometry's relative motion into step k as a 4×4 body-frame pose."""
-    if k == 0:
-        return np.eye(4)
-    c0, s0 = math.cos(oyaw[k - 1]), math.sin(oyaw[k - 1])
-    dx, dy, dyaw = ox[k] - ox[k - 1], oy[k] - oy[k - 1], oyaw[k] - oyaw[k - 1]
-    rel = np.eye(4)
-    rel[:2, :2] = [[math.cos(dyaw), -math.sin(dyaw)], [math.sin(dyaw), math.cos(dyaw)]]
-    rel[0, 3], rel[1, 3] = c0 * dx + s0 * dy, -s0 * dx + c0 * dy
-    return rel
-
-
 def _cold_start(road, seed, length_m, cfg, scale=1.0):
     """A cold start on a graph route (10 Hz, 1°/100 m heading drift, the odometry's lengths × ``scale``) from a
     1 km region 300 m off its start: the engine, (frame, error) of its first estimate, the truth's x and y."""
@@ -120,7 +108,7 @@ def _cold_start(road, seed, length_m, cfg, scale=1.0):
     eng.start_in_region(float(lat), float(lon), 1000.0)
     first = None
     for k in range(len(x)):
-        eng.add_odometry(0.1 * k, _rel(ox, oy, oyaw, k))
+        eng.add_odometry(0.1 * k, odometry_step(ox, oy, oyaw, k))
         p = eng.estimate()
         if p is not None and first is None:
             first = (k, math.hypot(p.x() - x[k], p.y() - y[k]))
@@ -168,7 +156,7 @@ def test_a_lost_estimate_is_found_again_on_the_road_network(road):
     def run(relocalise: bool):
         eng = MapFusion(road, FusionConfig(map_relocalisation=relocalise), odometry_rate_hz=10.0)
         for k in range(len(x)):
-            eng.add_odometry(0.1 * k, _rel(ox, oy, oyaw, k))
+            eng.add_odometry(0.1 * k, odometry_step(ox, oy, oyaw, k))
             if k % 10 == 0 and k < n_gps:
                 lat, lon = road.projection.to_geo(x[k] + 106.0, y[k] + 106.0)
                 eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
@@ -196,7 +184,7 @@ def _feed(road, cfg, x, y, ox, oy, oyaw, fixes_until_k: int, fix_offset=(0.0, 0.
             eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
         if k in skip:
             continue
-        rel = _rel(ox, oy, oyaw, k) if last is None or last == k - 1 else \
+        rel = odometry_step(ox, oy, oyaw, k) if last is None or last == k - 1 else \
             np.linalg.inv(_abs(ox, oy, oyaw, last)) @ _abs(ox, oy, oyaw, k)
         eng.add_odometry(0.1 * k, rel)
         last = k

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from mapfusion import FusionConfig, MapFusion, RoadMap
 from mapfusion.tracking import RoadFixes
-from tests.helpers import MAPS, drifting_odometry, graph_route
+from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
 ON = FusionConfig(road_fixes=True)
 
@@ -23,15 +23,6 @@ ON = FusionConfig(road_fixes=True)
 @pytest.fixture(scope="module")
 def road():
     return RoadMap.from_osm(MAPS / "helsinki.osm.pbf")
-
-
-def _rel(ox, oy, oyaw, k):
-    c0, s0 = math.cos(oyaw[k - 1]), math.sin(oyaw[k - 1])
-    dx, dy, dyaw = ox[k] - ox[k - 1], oy[k] - oy[k - 1], oyaw[k] - oyaw[k - 1]
-    rel = np.eye(4)
-    rel[:2, :2] = [[math.cos(dyaw), -math.sin(dyaw)], [math.sin(dyaw), math.cos(dyaw)]]
-    rel[0, 3], rel[1, 3] = c0 * dx + s0 * dy, -s0 * dx + c0 * dy
-    return rel
 
 
 def _wandering(road, seed, length_m=2500.0, gps_frames=400, scale_after=1.2):
@@ -53,7 +44,7 @@ def _run(road, cfg, x, y, ox, oy, oyaw, gps_frames):
         if k % 10 == 0 and k < gps_frames:
             lat, lon = road.projection.to_geo(x[k], y[k])
             eng.add_gps(0.1 * k, float(lat), float(lon), None, 1.0)
-        eng.add_odometry(0.1 * k, np.eye(4) if k == 0 else _rel(ox, oy, oyaw, k))
+        eng.add_odometry(0.1 * k, odometry_step(ox, oy, oyaw, k))
         p = eng.estimate()
         if p is not None and k >= gps_frames:
             errs.append(math.hypot(p.x() - x[k], p.y() - y[k]))
