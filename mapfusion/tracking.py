@@ -112,6 +112,12 @@ class RoadFixes:
             return None
         loc = self.particles.located(yaw)
         self.last = loc
+        return self._answer(k, loc, pred)
+
+    def _answer(self, k: int, loc: Located | None, pred: gtsam.Pose3) -> gtsam.NonlinearFactor | None:
+        """The particles' answer at a fix's turn (None: not confident): the fix, or None with the guards' state
+        moved on."""
+        cfg = self.cfg
         sigma = max(loc.spread_m, cfg.road_fix_sigma_m) if loc is not None else math.inf
         # continuity: since the last fix that entered the graph (or the particles' start, whose region the answer
         # may lie anywhere in), the answer has moved as the estimate has, within what the odometry may have
