@@ -723,11 +723,13 @@ class FusionConfig:
                                        "(in log) to the fix's cluster's scale: the map keeps observing the scale "
                                        "after GPS ends (0: the scale GPS measured stays).", min=0.0, max=1.0,
                                        source="issue 16 item 3")
-    road_fix_drift: float = param(0.1, "The estimate's σ for the gate grows by this fraction of the distance driven "
-                                  "since the last fix (GPS's or a road fix) when its marginal says less.", min=0.0,
+    road_fix_drift: float = param(0.1, "What the odometry may drift, as a fraction of the distance driven: the "
+                                  "gate's allowance since its last answer, and a restart's radius (× 3) since the "
+                                  "last fix (GPS's or a road fix).", min=0.0,
                                   max=10.0, source="issue 16; real TrianFlow drifts 10-12% (KITTI t_err)")
-    road_fix_gate_sigma: float = param(5.0, "A fix farther from the estimate than this × the combined σ (the "
-                                       "estimate's, the fix's) is not added (0: no gate).", min=0.0, max=1000.0,
+    road_fix_gate_sigma: float = param(5.0, "An answer that moved, since the last one, farther from where the "
+                                       "estimate moved than this × the combined σ (the answer's spread, the drift) "
+                                       "is not a fix (0: no gate).", min=0.0, max=1000.0,
                                        source="issue 16: never make a drive worse")
     relinearize_threshold: float = param(
         0.01,

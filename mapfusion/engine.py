@@ -99,7 +99,7 @@ class MapFusion(Reanchoring, RoadFixing):
         self._last_cov_check_t = -math.inf
         self._pos_sigma = self._lat_sigma = 0.0  # the estimate's positional σ: largest, across the vehicle
         self._init_reanchoring()
-        self._road_fixes = RoadFixes(road, self.cfg)  # (inert unless road_fixes and use_map)
+        self._road_fixes = RoadFixes(road, self.cfg, self.counters)  # (inert unless road_fixes and use_map)
 
     # ------------------------------------------------------------------ public API
     @property

@@ -176,13 +176,6 @@ def gps_factor(state: StateModel, k: int, x: float, y: float, alt: float | None,
     return gtsam.GPSFactor(X(k), gtsam.Point3(x, y, z), noise)
 
 
-def position_fix(k: int, x: float, y: float, sigma: float) -> gtsam.GPSFactor:
-    """A horizontal position fix on frame k (the road particles' answer: :mod:`.tracking`), σ per axis; z free
-    (the map has no height)."""
-    noise = gtsam.noiseModel.Diagonal.Precisions(np.array([1.0 / sigma**2, 1.0 / sigma**2, 0.0]))
-    return gtsam.GPSFactor(X(k), gtsam.Point3(x, y, 0.0), noise)
-
-
 def robust_kernel(cfg: FusionConfig):
     """The M-estimator on map priors, or None."""
     if cfg.robust_kernel is RobustKernel.huber:

@@ -93,7 +93,7 @@ class RoadParticles:
         self._base = np.concatenate(([0.0], np.cumsum(lengths + 1.0)))[:-1]  # (a 1 m gap keeps edges apart)
         self._glob = road.s_m[:n_pts].astype(np.float64) + self._base[road.edge[:n_pts]]
         self._exits = _exits(road)
-        self._two_way = np.array([road.ways[int(w)].travel == 0 for w in road.edge_way_index], dtype=bool)
+        self._two_way = _edge_travel(road) == 0
         self.edge = np.zeros(0, dtype=np.int64)
         self.direction = np.zeros(0, dtype=np.int64)
         self.along = np.zeros(0)
@@ -102,7 +102,6 @@ class RoadParticles:
         self._log_range = (0.0, 0.0)  # the logs of the scales searched over (equal: the scale is known)
         self.logw = np.zeros(0)
         self.driven_m = 0.0
-        self.log_evidence = 0.0  # the last step's (see step)
 
     def __len__(self) -> int:
         return len(self.edge)
@@ -264,9 +263,6 @@ class RoadParticles:
             loglik = -0.5 * (ex * ex + ey * ey) * (ref * ref) / (scale * scale * sigma_ref * sigma_ref)
         else:
             loglik = -0.5 * (ex * ex + ey * ey) / (sigma * sigma)
-        # the step's evidence: how well the posterior before it predicted the odometry's motion (log of the
-        # weighted mean likelihood; -0.5 k² where every particle is k σ off)
-        self.log_evidence = _logsumexp(self.logw + loglik)
         self.logw += loglik
         chord = math.hypot(ox, oy)
         if chord > 1.0:  # the offset follows the odometry's heading drift
@@ -339,12 +335,17 @@ class _Exits:
     direction: np.ndarray
 
 
+def _edge_travel(road: RoadMap) -> np.ndarray:
+    """Each edge's legal travel along its drawing: 1 forward only, -1 backward only, 0 both ways."""
+    if not len(road.edge_u):
+        return np.zeros(0, dtype=np.int64)
+    return np.array([road.ways[int(w)].travel for w in road.edge_way_index], dtype=np.int64)
+
+
 def _exits(road: RoadMap) -> _Exits:
     """The successors of every (edge, direction): the other edges at its exit vertex that may be
     driven away from it (no U-turn onto the same edge unless it is a dead end, handled by the caller)."""
-    n_edges = len(road.edge_u)
-    travel = np.array([road.ways[int(w)].travel for w in road.edge_way_index], dtype=np.int64) if n_edges else \
-        np.zeros(0, dtype=np.int64)
+    travel = _edge_travel(road)
     leaving: dict[int, list[tuple[int, int]]] = {}
     for e, (u, v) in enumerate(zip(road.edge_u.tolist(), road.edge_v.tolist())):
         if travel[e] >= 0:

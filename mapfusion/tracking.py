@@ -47,21 +47,14 @@ __all__ = ["RoadFixes", "RoadFixing"]
 class RoadFixes:
     """The particles that follow the vehicle while GPS is silent, and the fixes they give."""
 
-    def __init__(self, road: RoadMap, cfg: FusionConfig) -> None:
-        self.road, self.cfg = road, cfg
+    def __init__(self, road: RoadMap, cfg: FusionConfig, counters: Counters) -> None:
+        self.road, self.cfg, self.counters = road, cfg, counters  # (counts road_fixes and road_fixes_gated)
         self.enabled = cfg.road_fixes and cfg.use_map
-        # the particles' own view: no distance before an answer (they start where the vehicle is), the fix's disc
-        self._pcfg = dataclasses.replace(cfg, reloc_min_distance_m=0.0, reloc_converge_radius_m=cfg.road_fix_cluster_m,
-                                         reloc_converge_mass=cfg.road_fix_min_mass,
-                                         reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
-                                         reloc_uturn_probability=cfg.road_fix_uturn_probability)
         self.particles: RoadParticles | None = None  # the filter while it runs
         self._filter: RoadParticles | None = None
         self.last_gps_t = -math.inf
         self.starts = 0
-        self.added = 0
-        self.gated = 0
-        self.last: Located | None = None  # the last answer the particles gave (added or gated)
+        self.last: Located | None = None  # the particles' answer at the last fix's turn (None: not confident)
         self._anchor = (0.0, 0.0)  # odometry position (its own units) at the last particle step
         self._last_xy = (0.0, 0.0)
         self._moved = 0.0  # odometry distance since that step, its own units
@@ -130,7 +123,7 @@ class RoadFixes:
                                                                                  self._since_ref_m)
             gated = math.hypot(ex, ey) > tolerance
         if loc is None or gated:
-            self.gated += gated
+            self.counters.road_fixes_gated += gated
             self._unsure_m += self._since_fix_m
             self._since_fix_m = self._held_m = 0.0
             if self._unsure_m >= cfg.road_fix_restart_m:  # no fix for too long: start again around the estimate
@@ -146,8 +139,8 @@ class RoadFixes:
         self._ref, self._ref_pending = (loc.x_m, loc.y_m, pred.x(), pred.y()), not agree
         if agree:
             return None
-        self.added += 1
-        return factors.position_fix(k, loc.x_m, loc.y_m, sigma)
+        self.counters.road_fixes += 1
+        return factors.gps_factor(cfg.state, k, loc.x_m, loc.y_m, None, sigma)  # (z free: the map has no height)
 
     def _agrees(self, loc: Located, pred: gtsam.Pose3) -> bool:
         """The estimate is on a road (within its width, at most prior_max_angle_deg off its heading) within
@@ -162,7 +155,13 @@ class RoadFixes:
     def _start(self, x: float, y: float, yaw: float, scale: float, pred: gtsam.Pose3, sigma_m: float) -> None:
         cfg = self.cfg
         if self._filter is None:  # (one filter, started afresh each time: its exits table is built once)
-            self._filter = RoadParticles(self.road, self._pcfg, cfg.reloc_seed)
+            # the particles' own view: no distance before an answer (they start where the vehicle is), the fix's
+            # disc, their offsets and turns back
+            pcfg = dataclasses.replace(cfg, reloc_min_distance_m=0.0, reloc_converge_radius_m=cfg.road_fix_cluster_m,
+                                       reloc_converge_mass=cfg.road_fix_min_mass,
+                                       reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
+                                       reloc_uturn_probability=cfg.road_fix_uturn_probability)
+            self._filter = RoadParticles(self.road, pcfg, cfg.reloc_seed)
         self.particles = self._filter
         f = cfg.road_fix_scale_factor
         # around the estimate, as far as it may be off: its marginal's 3 σ, or 3 × what the odometry may have
@@ -196,7 +195,6 @@ class RoadFixing:
             return False
         assert self.alignment is not None and self._smoother is not None
         fix = rf.step(k, self.track.t[k], planar_of(self.track.raw[k]), self.alignment.scale, pred, self._pos_sigma)
-        self.counters.road_fixes, self.counters.road_fixes_gated = rf.added, rf.gated
         if fix is None:
             return False
         self._smoother.add(fix)

@@ -14,6 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapfusion import FusionConfig, MapFusion, RoadMap
+from mapfusion.counters import Counters
 from mapfusion.tracking import RoadFixes
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
@@ -99,7 +100,7 @@ def test_a_fix_comes_only_from_a_confident_posterior_and_is_never_tighter_than_i
     x, y, yaw, _ = graph_route(road, seed, 600.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, scale=scale, heading_rad=0.4, noise_m=0.02)
     cfg = dataclasses.replace(ON, road_fix_every_m=10.0)
-    fixes = RoadFixes(road, cfg)
+    fixes = RoadFixes(road, cfg, Counters())
     for k in range(len(x)):
         pred = gtsam.Pose3(gtsam.Rot3.Yaw(float(yaw[k])), gtsam.Point3(float(x[k]), float(y[k]), 0.0))
         f = fixes.step(k, 0.1 * k + 10.0, (float(ox[k]), float(oy[k]), float(oyaw[k])), 1.0, pred, 1.0)
@@ -118,7 +119,7 @@ def test_particles_without_a_confident_answer_start_again_around_the_estimate(ro
     posterior spreads, or its answer runs away from the estimate) are dropped: they start again where the
     estimate is."""
     cfg = dataclasses.replace(ON, road_fix_restart_m=100.0, road_fix_every_m=10.0)
-    fixes = RoadFixes(road, cfg)
+    fixes = RoadFixes(road, cfg, Counters())
     x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
     fixes.step(0, 10.0, (0.0, 0.0, 0.0), 1.0, gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0)), 1.0)
     assert fixes.starts == 1
