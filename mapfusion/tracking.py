@@ -143,14 +143,16 @@ class RoadFixes:
         return factors.gps_factor(cfg.state, k, loc.x_m, loc.y_m, None, sigma)  # (z free: the map has no height)
 
     def _agrees(self, loc: Located, pred: gtsam.Pose3) -> bool:
-        """The estimate is on a road (within its width, at most prior_max_angle_deg off its heading) within
-        ``road_fix_agree_m`` of the answer: a fix would only pull a right estimate to the particles' own errors
-        (their place on the centre line, their spread along the road)."""
+        """The estimate is on a road (within ``road_fix_agree_widths`` road widths of its centre line, at most
+        prior_max_angle_deg off its heading) within ``road_fix_agree_m`` of the answer: a fix would only pull a
+        right estimate to the particles' own errors (their place on the centre line, their spread along the
+        road)."""
         cfg = self.cfg
         if math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) > cfg.road_fix_agree_m:
             return False
         m = self.road.match(pred.x(), pred.y(), pred.rotation().yaw(), cfg.search_radius_m, cfg.angle_weight_m_per_deg)
-        return m is not None and m.lateral_m <= m.lanes * cfg.lane_width_m and m.angle_deg <= cfg.prior_max_angle_deg
+        return (m is not None and m.lateral_m <= cfg.road_fix_agree_widths * m.lanes * cfg.lane_width_m
+                and m.angle_deg <= cfg.prior_max_angle_deg)
 
     def _start(self, x: float, y: float, yaw: float, scale: float, pred: gtsam.Pose3, sigma_m: float) -> None:
         cfg = self.cfg

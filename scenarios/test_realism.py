@@ -63,11 +63,6 @@ def test_rain_at_least_one_and_a_half_times_clear(stats, preset, field):
     assert rain >= 1.5 * clear, f"{preset} {field}: rain {rain:.3g} < 1.5 × clear {clear:.3g}"
 
 
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (the initial batch's scale σ made relative): agree on 7 "
-                   "of 10 (was 8): the real TrianFlow 00's verdict turned from worse (66.0 against 65.7 m) to better "
-                   "(66.8 against 67.7 m), both lost, while the simulated mono preset on 00 stays worse (81.1 against "
-                   "79.6 m over three seeds); 02 mono (simulated better, real worse) and 00 mono disagree, 01-07 vo "
-                   "agree. Issue 22's acceptance (>= 80%) is not met")
 def test_map_fusion_verdict_agrees_with_the_real_outputs(request, data):
     cfg = request.config
     sim_rows, real_rows = family_results(cfg, "kitti-realism").values(), family_results(cfg, "kitti-real").values()

@@ -19,6 +19,7 @@ from mapfusion.tracking import RoadFixes
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
 ON = FusionConfig(road_fixes=True)
+OFF = FusionConfig(road_fixes=False)
 
 
 @pytest.fixture(scope="module")
@@ -54,22 +55,29 @@ def _run(road, cfg, x, y, ox, oy, oyaw, gps_frames):
     return eng, float(np.mean(errs)) if errs else math.nan, math.hypot(p.x() - x[-1], p.y() - y[-1])
 
 
-def test_road_fixes_hold_a_drive_whose_scale_wandered_after_gps(road):
+@pytest.mark.parametrize("widths", [1.0, ON.road_fix_agree_widths])
+def test_road_fixes_hold_a_drive_whose_scale_wandered_after_gps(road, widths):
     """Four drives whose odometry's scale moves 20% from the one GPS measured once GPS ends: without road
     fixes the estimate runs along (and off) the roads — mean online error after GPS 54 m over the four when
-    measured, each over 10 m; with them it stays near the roads' answer and the map re-measures the scale —
-    9.5 m when measured: at most 12 m, under a third of the error without, and better on every drive."""
+    measured, each over 10 m; with them it stays near the roads' answer and the map re-measures the scale.
+    With fixes wherever the estimate strays beyond the road's width (road_fix_agree_widths 1) 9.5 m when
+    measured: at most 12 m. The default lets an estimate stray 2.5 widths before a fix (the simulated VO on
+    KITTI's drives was pulled to the particles' errors): 14.1 m when measured; under a third of the error
+    without, and better on every drive, in both."""
+    on_cfg = dataclasses.replace(ON, road_fix_agree_widths=widths)
     off_errs, on_errs = [], []
     for seed in (1, 2, 3, 4):
         drive = _wandering(road, seed)
-        _, off, _ = _run(road, FusionConfig(), *drive, 400)
-        on_eng, on, _ = _run(road, ON, *drive, 400)
+        _, off, _ = _run(road, OFF, *drive, 400)
+        on_eng, on, _ = _run(road, on_cfg, *drive, 400)
         assert on_eng.counters.road_fixes > 0
         assert on < off, (seed, off, on)
         off_errs.append(off)
         on_errs.append(on)
     assert min(off_errs) > 10.0, off_errs
-    assert np.mean(on_errs) <= 12.0 and np.mean(on_errs) < np.mean(off_errs) / 3.0, (off_errs, on_errs)
+    assert np.mean(on_errs) < np.mean(off_errs) / 3.0, (off_errs, on_errs)
+    if widths == 1.0:
+        assert np.mean(on_errs) <= 12.0, on_errs
 
 
 def test_the_map_re_measures_a_scale_that_wandered(road):
@@ -86,7 +94,7 @@ def test_no_fix_while_gps_comes(road):
     """With fixes every second to the end, the particles never start: no road fix, the same estimate as
     without them."""
     x, y, ox, oy, oyaw = _wandering(road, 5, length_m=900.0)
-    off, _, err_off = _run(road, FusionConfig(), x, y, ox, oy, oyaw, len(x))
+    off, _, err_off = _run(road, OFF, x, y, ox, oy, oyaw, len(x))
     on, _, err_on = _run(road, ON, x, y, ox, oy, oyaw, len(x))
     assert on.counters.road_fixes == 0 and on.counters.road_fixes_gated == 0
     assert err_on == pytest.approx(err_off, abs=1e-9)
@@ -99,7 +107,7 @@ def test_a_fix_comes_only_from_a_confident_posterior_and_is_never_tighter_than_i
     configured mass, its σ is at least road_fix_sigma_m and its place lies on the map's roads."""
     x, y, yaw, _ = graph_route(road, seed, 600.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, scale=scale, heading_rad=0.4, noise_m=0.02)
-    cfg = dataclasses.replace(ON, road_fix_every_m=10.0)
+    cfg = dataclasses.replace(ON, road_fix_every_m=10.0, road_fix_agree_m=0.0)  # (the estimate is the truth)
     fixes = RoadFixes(road, cfg, Counters())
     for k in range(len(x)):
         pred = gtsam.Pose3(gtsam.Rot3.Yaw(float(yaw[k])), gtsam.Point3(float(x[k]), float(y[k]), 0.0))
