@@ -150,8 +150,8 @@ def _kidnapped(request):
 @pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (road fixes on): this family 3 "
                    "of 8 within 500 m (VO jump Helsinki s1 is no longer knocked off — the engine carries the last "
                    "velocity along the road over the VO's gap instead of its jump —; the others found again at "
-                   "220–1,449 m); over seeds 1–10 see docs/method.md — the search needs turns to converge, and a region "
-                   "of 200–300 m still holds look-alike paths; needs 90%")
+                   "220–1,449 m); over seeds 1–10 see docs/method.md — the search needs turns to converge, and a "
+                   "region of 200–300 m still holds look-alike paths; needs 90%")
 def test_kidnapped_runs_are_relocalised_within_500_m(request):
     """Issue 17: after the kidnap (a biased fix window, or a VO that re-initialises 30–300 m off) and with no
     GPS after it, at least 90% of the runs are found again by the map within 500 m of driving."""
@@ -164,10 +164,9 @@ def test_kidnapped_runs_are_relocalised_within_500_m(request):
                    "online error after re-localisation 34.9 m over this family (4.1–8.1 m but for GPS "
                    "bias Kotka s1, 233 m: re-anchored wrong, 100 m, then lost for good; it was 7.0 m before "
                    "reloc_particles_per_m 10 and the relative scale σ); 3 of its 8 runs re-anchored wrong once "
-                   "(stayed wrong 100 m, 481 m and 710 m) — over seeds "
-                   "1–10 the two changes took the mean after re-localisation from 28.7 to 16.3 m — after the search "
-                   "the engine tracks as after a GPS initialisation, and a wrong convergence is undone only by the next "
-                   "lost event")
+                   "(stayed wrong 100 m, 481 m and 710 m) — over seeds 1–10 those two changes took the mean after "
+                   "re-localisation from 28.7 to 16.3 m — after the search the engine tracks as after a GPS "
+                   "initialisation, and a wrong convergence is undone only by the next lost event")
 def test_kidnapped_runs_are_within_5_m_after_relocalisation_and_never_stay_wrong(request):
     """Issue 17: after re-localisation the mean online error is at most 5 m; no wrong convergence stays
     wrong for more than 200 m."""

@@ -220,8 +220,9 @@ def _resumed_off(road, seed):
 
 def test_a_vo_that_resumes_in_the_wrong_place_after_an_outage_is_found_again(road):
     """Four drives (Helsinki, GPS long gone when the VO resumes 120 m off): without map_relocalisation (and without
-    the road fixes, which also act here) every one ends more than 50 m off; with it the gap starts a search and at least 3 of 4 end within 15 m (route 4, which
-    U-turns at a dead end, converged to a place 90 m off when measured: the search's open failure)."""
+    the road fixes, which also act here) every one ends more than 50 m off; with it the gap starts a search and at
+    least 3 of 4 end within 15 m (route 4, which U-turns at a dead end, converged to a place 90 m off when measured:
+    the search's open failure)."""
     found = 0
     for seed in (2, 3, 4, 6):
         x, y, ox, oy, oyaw = _resumed_off(road, seed)
