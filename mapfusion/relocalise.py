@@ -92,6 +92,7 @@ class RoadParticles:
         lengths = road.edge_length_m
         self._base = np.concatenate(([0.0], np.cumsum(lengths + 1.0)))[:-1]  # (a 1 m gap keeps edges apart)
         self._glob = road.s_m[:n_pts].astype(np.float64) + self._base[road.edge[:n_pts]]
+        self._index = _ArcIndex(self._glob)
         self._exits = _exits(road)
         self._two_way = _edge_travel(road) == 0
         self.edge = np.zeros(0, dtype=np.int64)
@@ -102,6 +103,7 @@ class RoadParticles:
         self._log_range = (0.0, 0.0)  # the logs of the scales searched over (equal: the scale is known)
         self.logw = np.zeros(0)
         self.driven_m = 0.0
+        self._xy: np.ndarray | None = None  # the particles' positions while (edge, along) are unchanged
 
     def __len__(self) -> int:
         return len(self.edge)
@@ -140,6 +142,7 @@ class RoadParticles:
         self.log_scale = self.rng.uniform(lo, hi, n) if self.scale_free else np.full(n, lo)
         self.logw = np.full(n, -math.log(n))
         self.driven_m = 0.0
+        self._xy = None
         return int(near.size)
 
     def road_pose(self, edge: int, direction: int, along_m: float) -> tuple[float, float, float]:
@@ -167,8 +170,13 @@ class RoadParticles:
     # ---------------------------------------------------------------- geometry on the graph
     def positions(self, edge: np.ndarray | None = None, along: np.ndarray | None = None) -> np.ndarray:
         """(n, 2) map positions of (edge, along) pairs (the particles' own by default)."""
-        edge = self.edge if edge is None else edge
-        along = self.along if along is None else along
+        if edge is None and along is None:  # (the particles' own: kept from the step that moved them)
+            if self._xy is None or len(self._xy) != len(self.edge):
+                self._xy = self._positions(self.edge, self.along)
+            return self._xy
+        return self._positions(self.edge if edge is None else edge, self.along if along is None else along)
+
+    def _positions(self, edge: np.ndarray, along: np.ndarray) -> np.ndarray:
         road = self.road
         g, i = self._waypoint(edge, along)
         j = np.minimum(i + 1, road.edge_end[edge] - 1)
@@ -180,7 +188,7 @@ class RoadParticles:
         """The global arc length of (edge, along) pairs and the way-point at or before each, on its own edge."""
         road = self.road
         g = self._base[edge] + along
-        i = np.clip(np.searchsorted(self._glob, g, side="right") - 1, road.edge_start[edge], road.edge_end[edge] - 1)
+        i = np.clip(self._index.last_at_or_before(g), road.edge_start[edge], road.edge_end[edge] - 1)
         return g, i
 
     def _heading(self, edge: np.ndarray, along: np.ndarray, direction: np.ndarray) -> np.ndarray:
@@ -194,6 +202,7 @@ class RoadParticles:
         road; the importance weight (mean over the exits / the chosen exit's likelihood) keeps the
         posterior that of a uniform choice. No U-turn, except at a dead end."""
         road, exits = self.road, self._exits
+        self._xy = None  # (the particles move)
         along = self.along + self.direction * distance
         length = road.edge_length_m[self.edge]
         for hop in range(MAX_HOPS):
@@ -290,6 +299,7 @@ class RoadParticles:
         idx = np.searchsorted(cum, (self.rng.random() + np.arange(n)) / n)
         self.edge, self.direction = self.edge[idx], self.direction[idx]
         self.along, self.offset, self.log_scale = self.along[idx], self.offset[idx], self.log_scale[idx]
+        self._xy = self._xy[idx] if self._xy is not None else None
         self.logw = np.full(n, -math.log(n))
 
     def located(self, odometry_yaw_rad: float) -> Located | None:
@@ -301,8 +311,8 @@ class RoadParticles:
         xy, w = self.positions(), np.exp(self.logw)
         r = cfg.reloc_converge_radius_m
         cell = np.floor(xy / r).astype(np.int64)
-        keys, inv = np.unique(cell[:, 0] * 1_000_003 + cell[:, 1], return_inverse=True)
-        best = int(np.argmax(np.bincount(inv, weights=w, minlength=len(keys))))
+        inv = _cell_ids(cell)
+        best = int(np.argmax(np.bincount(inv, weights=w)))
         centre = np.average(xy[inv == best], axis=0, weights=w[inv == best] + 1e-300)
         for _ in range(2):  # the cell's mass, re-centred on the disc around it
             inside = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) <= r
@@ -360,6 +370,42 @@ def _exits(road: RoadMap) -> _Exits:
     flat = [x for r in rows for x in r]
     return _Exits(np.concatenate(([0], np.cumsum(counts))).astype(np.int64),
                   np.array([x[0] for x in flat], dtype=np.int64), np.array([x[1] for x in flat], dtype=np.int64))
+
+
+class _ArcIndex:
+    """``searchsorted(values, g, side="right") - 1`` for a sorted array of arc lengths (m, ≥ 0) in a few
+    gathers: a table of the answer at every whole metre, then a step forward over the few values between
+    (the way-points lie about a metre apart; a binary search over a city's millions is the particles' main
+    cost otherwise). The answers are the same to the index."""
+
+    def __init__(self, values: np.ndarray) -> None:
+        self._values = np.concatenate((values, [np.inf]))
+        top = int(math.ceil(float(values[-1]))) + 2 if len(values) else 1
+        self._first = np.searchsorted(values, np.arange(top, dtype=np.float64), side="right") - 1
+
+    def last_at_or_before(self, g: np.ndarray) -> np.ndarray:
+        """The index of the last value ≤ each of ``g`` (-1 where none is)."""
+        finite = np.isfinite(g)
+        if not finite.all() or len(self._values) == 1:
+            return np.searchsorted(self._values[:-1], g, side="right") - 1
+        first = self._first
+        i = first[np.clip(np.floor(g).astype(np.int64), 0, len(first) - 1)]
+        i = np.where(g < 0.0, -1, i)
+        active = np.flatnonzero(self._values[i + 1] <= g)
+        while active.size:  # (i + 1 stays within the array: its last value is +inf)
+            i[active] += 1
+            active = active[self._values[i[active] + 1] <= g[active]]
+        return i
+
+
+def _cell_ids(cell: np.ndarray) -> np.ndarray:
+    """Ids of (n, 2) integer grid cells that order them row by row (x, then y), as ``np.unique`` of the
+    pairs would: dense over the cells' bounding box when it is small, else unique's own."""
+    lo = cell.min(axis=0)
+    span = cell.max(axis=0) - lo + 1
+    if int(span[0]) * int(span[1]) <= 4 * len(cell) + 1024:
+        return (cell[:, 0] - lo[0]) * span[1] + (cell[:, 1] - lo[1])
+    return np.unique(cell[:, 0] * 1_000_003 + cell[:, 1], return_inverse=True)[1]
 
 
 def _logsumexp(v: np.ndarray) -> float:

@@ -301,3 +301,33 @@ def test_a_scale_range_upside_down_is_refused():
 
     with pytest.raises(ConfigError, match="reloc_scale_min"):
         FusionConfig(reloc_scale_min=2.0, reloc_scale_max=0.5)
+
+
+@settings(max_examples=60, deadline=None)
+@given(gaps=st.lists(st.sampled_from([0.0, 0.01, 0.3, 0.5, 0.999, 1.0, 1.7, 3.0, 12.5]), min_size=1, max_size=60),
+       queries=st.lists(st.floats(-5.0, 200.0), min_size=1, max_size=40))
+def test_the_arc_index_answers_as_a_binary_search(gaps, queries):
+    """The particles' lookup of the way-point at or before an arc length is numpy's searchsorted to the
+    index, repeated values (zero gaps), whole metres and values beyond either end included."""
+    from mapfusion.relocalise import _ArcIndex
+
+    values = np.cumsum(gaps)
+    g = np.concatenate((np.asarray(queries), values, values + 1e-12, np.floor(values)))
+    expected = np.searchsorted(values, g, side="right") - 1
+    assert np.array_equal(_ArcIndex(values).last_at_or_before(g), expected)
+
+
+@settings(max_examples=60, deadline=None)
+@given(cells=st.lists(st.tuples(st.integers(-3000, 3000), st.integers(-3000, 3000)), min_size=1, max_size=50),
+       narrow=st.booleans())
+def test_cell_ids_group_and_order_cells_as_unique_does(cells, narrow):
+    """The posterior's grid cells get ids that group the same cells and order them as np.unique orders
+    their keys (x, then y): the densest cell and its ties resolve the same way."""
+    from mapfusion.relocalise import _cell_ids
+
+    c = np.array(cells, dtype=np.int64) % 7 if narrow else np.array(cells, dtype=np.int64)
+    ids = _cell_ids(c)
+    _, expected = np.unique(c[:, 0] * 1_000_003 + c[:, 1], return_inverse=True)
+    order = np.argsort(ids[np.unique(expected, return_index=True)[1]])  # each unique cell's id, in unique's order
+    assert np.array_equal(order, np.arange(len(order)))
+    assert np.array_equal(ids[:, None] == ids[None, :], expected[:, None] == expected[None, :])
