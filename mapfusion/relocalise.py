@@ -182,7 +182,7 @@ class RoadParticles:
         j = np.minimum(i + 1, road.edge_end[edge] - 1)
         span = self._glob[j] - self._glob[i]
         f = np.where(span > 0, (g - self._glob[i]) / np.where(span > 0, span, 1.0), 0.0)[:, None]
-        return road.xy_m[i] * (1.0 - f) + road.xy_m[j] * f
+        return np.take(road.xy_m, i, axis=0) * (1.0 - f) + np.take(road.xy_m, j, axis=0) * f  # (take: a faster gather)
 
     def _waypoint(self, edge: np.ndarray, along: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The global arc length of (edge, along) pairs and the way-point at or before each, on its own edge."""
@@ -310,19 +310,26 @@ class RoadParticles:
             return None
         xy, w = self.positions(), np.exp(self.logw)
         r = cfg.reloc_converge_radius_m
-        cell = np.floor(xy / r).astype(np.int64)
-        inv = _cell_ids(cell)
+        cx, cy = np.floor(xy[:, 0] / r).astype(np.int64), np.floor(xy[:, 1] / r).astype(np.int64)
+        inv = _cell_ids(cx, cy)
         best = int(np.argmax(np.bincount(inv, weights=w)))
-        centre = np.average(xy[inv == best], axis=0, weights=w[inv == best] + 1e-300)
+        in_best = inv == best
+        centre = np.average(xy[in_best], axis=0, weights=w[in_best] + 1e-300)
+        # the two discs below, around points of the best cell, reach at most its neighbours two cells away:
+        # only the particles within three are measured (the same particles in the same order as all of them)
+        bx, by = cx[in_best][0], cy[in_best][0]
+        near = np.flatnonzero((np.abs(cx - bx) <= 3) & (np.abs(cy - by) <= 3))
+        xs, ws = xy[near], w[near]
         for _ in range(2):  # the cell's mass, re-centred on the disc around it
-            inside = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1]) <= r
-            centre = np.average(xy[inside], axis=0, weights=w[inside] + 1e-300)
-        mass = float(w[inside].sum())
+            inside = np.hypot(xs[:, 0] - centre[0], xs[:, 1] - centre[1]) <= r
+            centre = np.average(xs[inside], axis=0, weights=ws[inside] + 1e-300)
+        mass = float(ws[inside].sum())
         if mass < cfg.reloc_converge_mass:
             return None
-        wi = w[inside] / w[inside].sum()
-        d2 = np.sum((xy[inside] - centre) ** 2, axis=1)
-        k = int(np.flatnonzero(inside)[np.argmin(d2)])  # the particle nearest the centre gives the road
+        wi = ws[inside] / ws[inside].sum()
+        d2 = np.sum((xs[inside] - centre) ** 2, axis=1)
+        inside = near[inside]
+        k = int(inside[np.argmin(d2)])  # the particle nearest the centre gives the road
         sin_m, cos_m = float(np.sum(wi * np.sin(self.offset[inside]))), float(np.sum(wi * np.cos(self.offset[inside])))
         off, resultant = math.atan2(sin_m, cos_m), math.hypot(sin_m, cos_m)
         yaw_spread = math.sqrt(max(-2.0 * math.log(max(resultant, 1e-12)), 0.0))
@@ -398,14 +405,14 @@ class _ArcIndex:
         return i
 
 
-def _cell_ids(cell: np.ndarray) -> np.ndarray:
-    """Ids of (n, 2) integer grid cells that order them row by row (x, then y), as ``np.unique`` of the
-    pairs would: dense over the cells' bounding box when it is small, else unique's own."""
-    lo = cell.min(axis=0)
-    span = cell.max(axis=0) - lo + 1
-    if int(span[0]) * int(span[1]) <= 4 * len(cell) + 1024:
-        return (cell[:, 0] - lo[0]) * span[1] + (cell[:, 1] - lo[1])
-    return np.unique(cell[:, 0] * 1_000_003 + cell[:, 1], return_inverse=True)[1]
+def _cell_ids(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
+    """Ids of integer grid cells (x and y indices) that order them row by row (x, then y), as ``np.unique``
+    of the pairs would: dense over the cells' bounding box when it is small, else unique's own."""
+    x0, y0 = int(cx.min()), int(cy.min())
+    nx, ny = int(cx.max()) - x0 + 1, int(cy.max()) - y0 + 1
+    if nx * ny <= 4 * len(cx) + 1024:
+        return (cx - x0) * ny + (cy - y0)
+    return np.unique(cx * 1_000_003 + cy, return_inverse=True)[1]
 
 
 def _logsumexp(v: np.ndarray) -> float:

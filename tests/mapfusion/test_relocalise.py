@@ -326,7 +326,7 @@ def test_cell_ids_group_and_order_cells_as_unique_does(cells, narrow):
     from mapfusion.relocalise import _cell_ids
 
     c = np.array(cells, dtype=np.int64) % 7 if narrow else np.array(cells, dtype=np.int64)
-    ids = _cell_ids(c)
+    ids = _cell_ids(c[:, 0], c[:, 1])
     _, expected = np.unique(c[:, 0] * 1_000_003 + c[:, 1], return_inverse=True)
     order = np.argsort(ids[np.unique(expected, return_index=True)[1]])  # each unique cell's id, in unique's order
     assert np.array_equal(order, np.arange(len(order)))
