@@ -672,6 +672,17 @@ class FusionConfig:
                                        "reloc_gap_margin_m + this × the gap, and the opened GPS gate's σ at least "
                                        "this × the gap.",
                                        unit="m/s", min=0.0, max=100.0, source="issue 17: city speeds")
+    reloc_kld_epsilon: float = param(0.0, "Adaptive particle count (KLD-sampling, Fox 2003): at each resampling as "
+                                     "many particles as bound the posterior's error by this (Kullback-Leibler "
+                                     "divergence, 99% confidence) over the bins it occupies, at most the count the "
+                                     "filter started with (0: the count stays).", min=0.0, max=1.0,
+                                     source="issue 21; Fox, 'Adapting the sample size in particle filters through "
+                                     "KLD-sampling', IJRR 2003")
+    reloc_kld_bin_m: float = param(5.0, "Bin size b of that count: position cells of b metres, each direction, "
+                                   "heading offsets per 2·b degrees, scales per b percent.", unit="m", min=0.5,
+                                   max=20.0, source="issue 21; by measurement")
+    reloc_particles_min: int = param(500, "Fewest particles an adaptive count keeps.", min=1, max=2_000_000,
+                                     source="issue 21")
     reloc_seed: int = param(0, "Seed of the re-localisation's random numbers (runs are reproducible).", min=0,
                             max=2**31 - 1, source="reproducibility")
     road_fixes: bool = param(True, "While GPS is silent, road-network particles (the re-localisation's, the "
@@ -679,6 +690,9 @@ class FusionConfig:
                              "confident position enters the graph as a fix: the map's own answer to where the "
                              "vehicle is, from the odometry's shape over many junctions, independent of the "
                              "estimate's single road association.", source="issue 16 items 3-4, issue 17 (Lost!)")
+    road_fix_kld_epsilon: float = param(0.05, "reloc_kld_epsilon for the road fixes' particles: once they agree on "
+                                        "one place they need far fewer than it took to find it.", min=0.0, max=1.0,
+                                        source="issue 21; by measurement")
     road_fix_after_gps_s: float = param(2.0, "The particles start when no GPS fix was used for this long; a used fix "
                                         "stops them.", unit="s", min=0.0, exclusive_min=True, max=86400.0,
                                         source="GPS places the estimate better while it comes")

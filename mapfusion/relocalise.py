@@ -43,7 +43,7 @@ from .roadmap import RoadMap
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Region", "Located", "RoadParticles", "Relocaliser"]
+__all__ = ["Region", "Located", "RoadParticles", "Relocaliser", "kld_count"]
 
 #: Vertices a particle may pass in one step (a step longer than this many short edges stops at the last).
 MAX_HOPS = 16
@@ -104,6 +104,7 @@ class RoadParticles:
         self.logw = np.zeros(0)
         self.driven_m = 0.0
         self._xy: np.ndarray | None = None  # the particles' positions while (edge, along) are unchanged
+        self._n_max = 0  # the count the filter started with (an adaptive count stays at or under it)
 
     def __len__(self) -> int:
         return len(self.edge)
@@ -143,6 +144,7 @@ class RoadParticles:
         self.logw = np.full(n, -math.log(n))
         self.driven_m = 0.0
         self._xy = None
+        self._n_max = n
         return int(near.size)
 
     def road_pose(self, edge: int, direction: int, along_m: float) -> tuple[float, float, float]:
@@ -297,10 +299,28 @@ class RoadParticles:
         cum = np.cumsum(w)
         cum[-1] = 1.0
         idx = np.searchsorted(cum, (self.rng.random() + np.arange(n)) / n)
+        if self.cfg.reloc_kld_epsilon > 0:  # as many as the occupied bins need (KLD-sampling), drawn afresh
+            m = min(max(kld_count(self._bins(idx), self.cfg.reloc_kld_epsilon), self.cfg.reloc_particles_min),
+                    max(self._n_max, n))
+            if m != n:
+                n = m
+                idx = np.searchsorted(cum, (self.rng.random() + np.arange(n)) / n)
         self.edge, self.direction = self.edge[idx], self.direction[idx]
         self.along, self.offset, self.log_scale = self.along[idx], self.offset[idx], self.log_scale[idx]
         self._xy = self._xy[idx] if self._xy is not None else None
         self.logw = np.full(n, -math.log(n))
+
+    def _bins(self, idx: np.ndarray) -> int:
+        """How many bins of the state the particles ``idx`` occupy: cells of ``reloc_kld_bin_m`` = b, each
+        direction, heading offsets per 2·b degrees, scales per b percent (each about b metres of position
+        after some 30-100 m of driving)."""
+        b = self.cfg.reloc_kld_bin_m
+        xy = self.positions()[idx]
+        key = np.floor(xy[:, 0] / b).astype(np.int64) * 2_000_003 + np.floor(xy[:, 1] / b).astype(np.int64)
+        key = key * 2 + (self.direction[idx] > 0)
+        key = key * 1024 + np.floor(self.offset[idx] / math.radians(2.0 * b)).astype(np.int64)
+        key = key * 2048 + np.floor(self.log_scale[idx] / (0.01 * b)).astype(np.int64)
+        return int(np.unique(key).size)
 
     def located(self, odometry_yaw_rad: float) -> Located | None:
         """The main cluster's pose when the posterior has converged (see the module docstring), else None;
@@ -413,6 +433,17 @@ def _cell_ids(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
     if nx * ny <= 4 * len(cx) + 1024:
         return (cx - x0) * ny + (cy - y0)
     return np.unique(cx * 1_000_003 + cy, return_inverse=True)[1]
+
+
+def kld_count(bins: int, epsilon: float, z: float = 2.326) -> int:
+    """Particles that bound the Kullback-Leibler divergence between the sample-based and the true posterior
+    by ``epsilon`` with probability Φ(z) (99%) when the posterior occupies ``bins`` bins (Fox 2003, from the
+    Wilson-Hilferty approximation of the χ² quantile)."""
+    if bins <= 1:
+        return 1
+    k = bins - 1
+    a = 2.0 / (9.0 * k)
+    return int(math.ceil(k / (2.0 * epsilon) * (1.0 - a + math.sqrt(a) * z) ** 3))
 
 
 def _logsumexp(v: np.ndarray) -> float:

@@ -162,7 +162,8 @@ class RoadFixes:
             pcfg = dataclasses.replace(cfg, reloc_min_distance_m=0.0, reloc_converge_radius_m=cfg.road_fix_cluster_m,
                                        reloc_converge_mass=cfg.road_fix_min_mass,
                                        reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
-                                       reloc_uturn_probability=cfg.road_fix_uturn_probability)
+                                       reloc_uturn_probability=cfg.road_fix_uturn_probability,
+                                       reloc_kld_epsilon=cfg.road_fix_kld_epsilon)
             self._filter = RoadParticles(self.road, pcfg, cfg.reloc_seed)
         self.particles = self._filter
         f = cfg.road_fix_scale_factor

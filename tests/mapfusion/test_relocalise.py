@@ -331,3 +331,45 @@ def test_cell_ids_group_and_order_cells_as_unique_does(cells, narrow):
     order = np.argsort(ids[np.unique(expected, return_index=True)[1]])  # each unique cell's id, in unique's order
     assert np.array_equal(order, np.arange(len(order)))
     assert np.array_equal(ids[:, None] == ids[None, :], expected[:, None] == expected[None, :])
+
+
+@settings(max_examples=40, deadline=None)
+@given(bins=st.integers(2, 100_000), epsilon=st.floats(0.005, 0.5))
+def test_kld_count_is_the_chi_square_bound(bins, epsilon):
+    """Fox's count: the 99% quantile of χ² with bins - 1 degrees of freedom over 2ε (its Wilson-Hilferty
+    approximation is within 2% from a few bins on), more for more bins and for a tighter bound."""
+    from scipy.stats import chi2
+
+    from mapfusion.relocalise import kld_count
+
+    n = kld_count(bins, epsilon)
+    exact = chi2.ppf(0.99, bins - 1) / (2.0 * epsilon)
+    assert abs(n - exact) <= 0.02 * exact + 1.0 or bins < 5
+    assert kld_count(bins + 1, epsilon) >= n and kld_count(bins, epsilon / 2) >= n
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000), steps=st.integers(5, 40), turn=st.floats(-math.pi, math.pi))
+def test_an_adaptive_count_stays_between_its_floor_and_the_start_and_shrinks_once_sure(road, seed, steps, turn):
+    """With KLD-sampling the particles never exceed the count they started with nor fall under the floor, the
+    posterior stays a distribution on legal roads, and a drive that settles the posterior uses fewer particles
+    than it started with."""
+    import dataclasses
+
+    cfg = dataclasses.replace(CFG, reloc_kld_epsilon=0.05, reloc_particles_min=200)
+    p = RoadParticles(road, cfg, seed)
+    x, y, yaw, _ = graph_route(road, seed, 5.0 * steps + 50.0)
+    assert p.start(Region(float(x[0]), float(y[0]), 60.0), float(yaw[0])) > 0
+    n0 = len(p)
+    k_prev = 0
+    for k in range(1, len(x)):
+        if math.hypot(x[k] - x[k_prev], y[k] - y[k_prev]) < 5.0:
+            continue
+        moved = float(np.sum(np.hypot(np.diff(x[k_prev:k + 1]), np.diff(y[k_prev:k + 1]))))
+        p.step(moved, np.array([x[k] - x[k_prev], y[k] - y[k_prev]]))
+        k_prev = k
+        assert min(200, n0) <= len(p) <= n0
+        assert math.isclose(float(np.exp(p.logw).sum()), 1.0, rel_tol=1e-9)
+        assert np.all(p.along >= 0.0) and np.all(p.along <= road.edge_length_m[p.edge] + 1e-9)
+    if p.located(float(yaw[k_prev])) is not None:  # settled: the count came down
+        assert len(p) < n0
