@@ -18,6 +18,15 @@ elif not os.environ.get("CI"):
     settings.load_profile("dev")
 
 
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """pytest-xdist's ``loadgroup``: a test with no group of its own goes with the others of its file (as
+    ``loadfile`` would: a module's expensive fixtures are built once); the scenario families group by family."""
+    for item in items:
+        if item.get_closest_marker("xdist_group") is None:
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _isolated_cache(tmp_path_factory):
     """Road-map and network caches of a test run go to a temporary folder, never the user's cache."""

@@ -26,6 +26,12 @@ def pytest_addoption(parser):
     parser.addoption("--scenario-workers", type=int, default=2, help="worker processes for the family runs")
 
 
+def family_group(name: str) -> str:
+    """The pytest-xdist group of the tests that read a family: the simulated and the real KITTI odometry share
+    one (issue 22's verdict compares them), every other family is its own."""
+    return "family:kitti-realism" if name in ("kitti-real", "kitti-realism") else f"family:{name}"
+
+
 def family_results(config, name: str) -> dict[str, dict]:
     """Metrics of every run of a family, computed once per session."""
     if name not in _RESULTS:

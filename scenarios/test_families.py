@@ -15,7 +15,7 @@ import pytest
 
 from sim.scenario import load_family
 
-from .conftest import FAMILIES, family_results, load_baselines
+from .conftest import FAMILIES, family_group, family_results, load_baselines
 
 pytestmark = pytest.mark.sumo
 
@@ -25,16 +25,22 @@ FAMILY_NAMES = ("clear", "rain", "rain-tunnel", "heavy-rain", "intersections", "
 FULL_NAMES = tuple(f"{f}-full" for f in FAMILY_NAMES if (FAMILIES / f"{f}-full.toml").exists())
 
 
+def family(name: str) -> pytest.MarkDecorator:
+    """The family a test reads: under pytest-xdist its runs and every test of it go to one worker, which computes
+    the family once (each family on its own, so that the families share both workers)."""
+    return pytest.mark.xdist_group(family_group(name))
+
+
 def _runs():
     """Every run of every family; a run whose real data is not available here ($MAPFUSION_DATA unset)
     is skipped, saying so."""
     out = []
     for fam in FAMILY_NAMES + FULL_NAMES:
-        family = load_family(FAMILIES / f"{fam}.toml")
-        marks = [pytest.mark.full] if fam in FULL_NAMES else []
-        out += [pytest.param(fam, sc.name, id=sc.name, marks=marks) for sc in family.scenarios]
+        family_ = load_family(FAMILIES / f"{fam}.toml")
+        marks = [family(fam)] + ([pytest.mark.full] if fam in FULL_NAMES else [])
+        out += [pytest.param(fam, sc.name, id=sc.name, marks=marks) for sc in family_.scenarios]
         out += [pytest.param(fam, name, id=name, marks=marks + [pytest.mark.skip(reason=why)])
-                for name, why in family.unavailable]
+                for name, why in family_.unavailable]
     return out
 
 
@@ -69,10 +75,12 @@ def _reduction(rows) -> float:
     return 1.0 - mm / mo
 
 
+@family("rain")
 def test_rain_reduces_mean_ate_by_40_percent(request):
     assert _reduction(_ok(request, "rain")) >= 0.40
 
 
+@family("heavy-rain")
 @pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (road fixes on; unchanged by them): mean ATE reduced by "
                    "10%, 11.98 → 10.79 m (heavy-rain drives with GPS every 5 s; Kotka seed 2 de-localises with and "
                    "without the map); 2026-11-23: 20%, 15.54 → 12.47 m; needs ≥ 40%")
@@ -80,11 +88,13 @@ def test_heavy_rain_reduces_mean_ate_by_40_percent(request):
     assert _reduction(_ok(request, "heavy-rain")) >= 0.40
 
 
+@family("clear")
 def test_clear_never_worse_by_more_than_0_3_m(request):
     rows = _ok(request, "clear")
     assert max(r["ate_mapfusion_m"] - r["ate_odometry_m"] for r in rows) <= 0.3
 
 
+@family("intersections")
 @pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (planar steps on the local horizontal): 95.5% (2026-11-23: "
                    "96.0%; 97.7% with the paper-calibrated VO): the SUMO Helsinki runs match 85.5% and 53.8% (from 94.7% "
                    "and 74.4% before the VO fit) — with the fitted VO's heading noise the estimate reaches junctions "
@@ -107,6 +117,7 @@ def _real(request):
     return _ok(request, "kitti-real")
 
 
+@family("kitti-real")
 @pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (road fixes on): worse than without the map on 1 of "
                    "10, monocular TrianFlow 01 546.3 → 547.0 m: a highway drive whose scale collapses (its window σ "
                    "is 1.08), lost with and without the map; on one long road the road particles never hold 80% in "
@@ -119,11 +130,13 @@ def test_real_odometry_the_map_never_makes_a_drive_worse(request):
     assert all(r["ate_mapfusion_m"] <= r["ate_odometry_m"] for r in rows)
 
 
+@family("kitti-real")
 def test_real_odometry_30_percent_better_on_average(request):
     assert _reduction(_real(request)) >= 0.30
 
 
 
+@family("rain-tunnel")
 @pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (planar steps on the local horizontal, the GPS gate opened "
                    "after an odometry outage): no vo+wheel run de-localises now (2026-11-23: Andorra seed 1, 24.9 m), "
                    "but the zones' mean error is 5.83 m (1.8–10.6 m; Andorra seed 2 10.6 m; road fixes on, "
@@ -147,6 +160,7 @@ def _kidnapped(request):
     return rows
 
 
+@family("kidnapped")
 @pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (road fixes on): this family 3 "
                    "of 8 within 500 m (VO jump Helsinki s1 is no longer knocked off — the engine carries the last "
                    "velocity along the road over the VO's gap instead of its jump —; the others found again at "
@@ -160,6 +174,7 @@ def test_kidnapped_runs_are_relocalised_within_500_m(request):
     assert len(found) >= 0.9 * len(rows), sorted((r["scenario"], r["relocalisation_m"]) for r in rows)
 
 
+@family("kidnapped")
 @pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (road fixes on; 35.2 m and 575 m without them): mean "
                    "online error after re-localisation 34.9 m over this family (4.1–8.1 m but for GPS "
                    "bias Kotka s1, 233 m: re-anchored wrong, 100 m, then lost for good; it was 7.0 m before "

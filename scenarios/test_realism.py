@@ -18,7 +18,7 @@ import pytest
 
 from mapfusion.harness.realism import format_stats, real_stats, simulated_stats, verdict_pairs, within_real_range
 
-from .conftest import REPORTS, family_results
+from .conftest import REPORTS, family_group, family_results
 
 pytestmark = pytest.mark.sumo
 
@@ -63,6 +63,7 @@ def test_rain_at_least_one_and_a_half_times_clear(stats, preset, field):
     assert rain >= 1.5 * clear, f"{preset} {field}: rain {rain:.3g} < 1.5 × clear {clear:.3g}"
 
 
+@pytest.mark.xdist_group(family_group("kitti-realism"))  # (on the worker that runs both families)
 def test_map_fusion_verdict_agrees_with_the_real_outputs(request, data):
     cfg = request.config
     sim_rows, real_rows = family_results(cfg, "kitti-realism").values(), family_results(cfg, "kitti-real").values()
