@@ -183,6 +183,7 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
                         "gps_relocalisations": c.gps_relocalisations,
                         "lost_events": c.lost_events, "lost_s": mf.engine.lost_s,
                         "map_relocalisations": c.map_relocalisations,
+                        "road_fixes": c.road_fixes, "road_fixes_gated": c.road_fixes_gated,
                         "scale": mf.engine.scale, "initialised_at_s": mf.engine.initialised_at})
         metrics.update(_kidnap_metrics(mf, truth, sensors.kidnap))
         if motion is not None:  # wheel + gyro runs only: the vo and vio rows keep their keys

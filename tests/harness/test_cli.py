@@ -297,6 +297,8 @@ def test_run_writes_every_contract_file(tmp_path):
     for k in METRIC_KEYS:
         assert k in metrics, k
     assert metrics["lost_events"] == 0 and metrics["lost_s"] == 0.0  # the single-frame default never says lost
+    counted = json.loads((out / "r1" / "fusion_events.json").read_text())["counters"]
+    assert (metrics["road_fixes"], metrics["road_fixes_gated"]) == (counted["road_fixes"], counted["road_fixes_gated"])
     lines = (out / "results.jsonl").read_text().splitlines()
     rows = [json.loads(line) for line in lines]  # whole lines, valid JSON
     by = {row["scenario"]: row for row in rows}  # lines in the order the runs finished
