@@ -728,6 +728,13 @@ class FusionConfig:
                                          source="issue 16: simulated VO on KITTI 00/02/05 (1 width: 2.9 -> 4.0 m, "
                                          "5.3 -> 7.1 m; 2.5: unchanged) and 60 runs seeds 1-10 (10.8 m; "
                                          "any distance: 11.7 m)")
+    road_fix_rival_mass: float = param(0.05, "No fix farther than road_fix_agree_m from the estimate while the "
+                                       "particles hold at least this share of their posterior within half that "
+                                       "distance of the estimate (outside the answer's road_fix_cluster_m): they "
+                                       "have not ruled its place out, only "
+                                       "preferred another (a parallel road, a wrong scale) (0: no such test).",
+                                       min=0.0, max=1.0, source="issue 16: Helsinki VIO clear-full s3, fixes 43 m "
+                                       "off with 15% of the posterior at the estimate; by measurement")
     road_fix_sigma_m: float = param(3.0, "Smallest σ of a fix (per axis; the cluster's spread when larger).",
                                     unit="m", min=0.01, max=1000.0, source="issue 16; by measurement")
     road_fix_offset_max_deg: float = param(5.0, "Largest heading innovation the road fixes' particles' offsets follow "

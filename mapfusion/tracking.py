@@ -146,13 +146,25 @@ class RoadFixes:
         """The estimate is on a road (within ``road_fix_agree_widths`` road widths of its centre line, at most
         prior_max_angle_deg off its heading) within ``road_fix_agree_m`` of the answer: a fix would only pull a
         right estimate to the particles' own errors (their place on the centre line, their spread along the
-        road)."""
+        road). Or, farther, the particles still hold ``road_fix_rival_mass`` of their posterior near the
+        estimate: they preferred another place without ruling its own out."""
         cfg = self.cfg
         if math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) > cfg.road_fix_agree_m:
-            return False
+            return self._rival_mass(loc, pred) >= cfg.road_fix_rival_mass > 0  # (far: unless they still hold it)
         m = self.road.match(pred.x(), pred.y(), pred.rotation().yaw(), cfg.search_radius_m, cfg.angle_weight_m_per_deg)
         return (m is not None and m.lateral_m <= cfg.road_fix_agree_widths * m.lanes * cfg.lane_width_m
                 and m.angle_deg <= cfg.prior_max_angle_deg)
+
+    def _rival_mass(self, loc: Located, pred: gtsam.Pose3) -> float:
+        """The particles' posterior mass within road_fix_agree_m / 2 of the estimate, outside the answer's own
+        disc (road_fix_cluster_m)."""
+        p, cfg = self.particles, self.cfg
+        if p is None or len(p) == 0:
+            return 0.0
+        xy = p.positions()
+        near = (np.hypot(xy[:, 0] - pred.x(), xy[:, 1] - pred.y()) <= 0.5 * cfg.road_fix_agree_m) & \
+            (np.hypot(xy[:, 0] - loc.x_m, xy[:, 1] - loc.y_m) > cfg.road_fix_cluster_m)
+        return float(np.exp(p.logw[near]).sum())
 
     def _start(self, x: float, y: float, yaw: float, scale: float, pred: gtsam.Pose3, sigma_m: float) -> None:
         cfg = self.cfg

@@ -136,3 +136,36 @@ def test_particles_without_a_confident_answer_start_again_around_the_estimate(ro
         pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0 + 1.5 * k, y0, 0.0))
         fixes.step(k, 10.0 + 0.1 * k, (1.5 * k, wiggle, 0.0), 1.0, pred, 1.0)
     assert fixes.starts >= 2
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), rival=st.floats(0.0, 0.5), threshold=st.sampled_from([0.0, 0.05, 0.2]))
+def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road, seed, rival, threshold):
+    """An answer farther than road_fix_agree_m from the estimate is a fix only when the particles have ruled the
+    estimate's place out: their posterior mass near the estimate (outside the answer's own disc) is under
+    road_fix_rival_mass (0: always a fix)."""
+    from mapfusion.relocalise import Located, RoadParticles
+
+    cfg = dataclasses.replace(ON, road_fix_rival_mass=threshold)
+    rng = np.random.default_rng(seed)
+    n_pts = int(np.count_nonzero(~road.is_join))
+    i = int(rng.integers(n_pts))  # the estimate, on a way-point; the answer 40-60 m away on another
+    d = np.hypot(road.xy_m[:n_pts, 0] - road.xy_m[i, 0], road.xy_m[:n_pts, 1] - road.xy_m[i, 1])
+    far = np.flatnonzero((d > 40.0) & (d < 60.0))
+    if far.size == 0:
+        return
+    j = int(far[rng.integers(far.size)])
+    p = RoadParticles(road, cfg)
+    n = 1000
+    at = np.where(np.arange(n) < n // 2, i, j)  # half the particles at each place, weighted rival : 1 - rival
+    p.edge, p.direction = road.edge[at].astype(np.int64), np.ones(n, dtype=np.int64)
+    p.along, p.offset, p.log_scale = road.s_m[at].astype(np.float64), np.zeros(n), np.zeros(n)
+    w = np.where(at == i, rival, 1.0 - rival) / (n // 2) + 1e-300
+    p.logw = np.log(w / w.sum())
+    fixes = RoadFixes(road, cfg, Counters())
+    fixes.particles = p
+    xj, yj = (float(v) for v in road.xy_m[j])
+    loc = Located(xj, yj, 0.0, 0.0, int(road.edge[j]), 1, float(road.s_m[j]), 1.0 - rival, 1.0, 0.0, 100.0)
+    pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(float(road.xy_m[i, 0]), float(road.xy_m[i, 1]), 0.0))
+    held = fixes._agrees(loc, pred)
+    assert held == (threshold > 0 and rival >= threshold - 1e-9) or abs(rival - threshold) < 1e-6
