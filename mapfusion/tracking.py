@@ -16,10 +16,12 @@ holds ``road_fix_min_mass`` of the posterior, its pose is a fix: σ its spread (
 would be too weak to pull it back, and the posterior's mass already weighed the roads), and not added
 unless it moved as the estimate did since the last one (``road_fix_gate_sigma``, ``road_fix_drift``), and
 not while the estimate lies on a road within ``road_fix_agree_m`` of it (a right estimate is not pulled
-to the particles' own errors). A new answer (after a start, or a step without one) must first hold,
-confident and continuous, over ``road_fix_hold_m``. Particles that give no confident answer over
-``road_fix_restart_m`` start again around the estimate: a posterior spread for long gathers again on
-look-alike roads far away. A used GPS fix stops them.
+to the particles' own errors), nor, farther, while the particles still hold ``road_fix_rival_mass`` of their
+posterior near it (they preferred another place without ruling its own out). A new answer (after a start,
+or a step without one) must first hold, confident and continuous, over ``road_fix_hold_m``. Particles that
+give no confident answer over ``road_fix_restart_m`` start again around the estimate: a posterior spread
+for long gathers again on look-alike roads far away. A used GPS fix stops them. Their number adapts to
+how settled the posterior is (``road_fix_kld_epsilon``: KLD-sampling).
 """
 
 from __future__ import annotations
