@@ -175,6 +175,7 @@ class RoadParticles:
         if edge is None and along is None:  # (the particles' own: kept from the step that moved them)
             if self._xy is None or len(self._xy) != len(self.edge):
                 self._xy = self._positions(self.edge, self.along)
+                self._xy.flags.writeable = False  # (shared with every caller until the particles move)
             return self._xy
         return self._positions(self.edge if edge is None else edge, self.along if along is None else along)
 
@@ -307,7 +308,9 @@ class RoadParticles:
                 idx = np.searchsorted(cum, (self.rng.random() + np.arange(n)) / n)
         self.edge, self.direction = self.edge[idx], self.direction[idx]
         self.along, self.offset, self.log_scale = self.along[idx], self.offset[idx], self.log_scale[idx]
-        self._xy = self._xy[idx] if self._xy is not None else None
+        if self._xy is not None:
+            self._xy = self._xy[idx]
+            self._xy.flags.writeable = False
         self.logw = np.full(n, -math.log(n))
 
     def _bins(self, idx: np.ndarray) -> int:

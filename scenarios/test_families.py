@@ -36,11 +36,11 @@ def _runs():
     is skipped, saying so."""
     out = []
     for fam in FAMILY_NAMES + FULL_NAMES:
-        family_ = load_family(FAMILIES / f"{fam}.toml")
+        loaded = load_family(FAMILIES / f"{fam}.toml")
         marks = [family(fam)] + ([pytest.mark.full] if fam in FULL_NAMES else [])
-        out += [pytest.param(fam, sc.name, id=sc.name, marks=marks) for sc in family_.scenarios]
+        out += [pytest.param(fam, sc.name, id=sc.name, marks=marks) for sc in loaded.scenarios]
         out += [pytest.param(fam, name, id=name, marks=marks + [pytest.mark.skip(reason=why)])
-                for name, why in family_.unavailable]
+                for name, why in loaded.unavailable]
     return out
 
 
