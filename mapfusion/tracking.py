@@ -177,7 +177,8 @@ class RoadFixes:
                                        reloc_converge_mass=cfg.road_fix_min_mass,
                                        reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
                                        reloc_uturn_probability=cfg.road_fix_uturn_probability,
-                                       reloc_kld_epsilon=cfg.road_fix_kld_epsilon)
+                                       reloc_kld_epsilon=cfg.road_fix_kld_epsilon,
+                                       reloc_particles=cfg.road_fix_particles)
             self._filter = RoadParticles(self.road, pcfg, cfg.reloc_seed)
         self.particles = self._filter
         f = cfg.road_fix_scale_factor
