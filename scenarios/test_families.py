@@ -81,9 +81,10 @@ def test_rain_reduces_mean_ate_by_40_percent(request):
 
 
 @family("heavy-rain")
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (road fixes on; unchanged by them): mean ATE reduced by "
-                   "10%, 11.98 → 10.79 m (heavy-rain drives with GPS every 5 s; Kotka seed 2 de-localises with and "
-                   "without the map); 2026-11-23: 20%, 15.54 → 12.47 m; needs ≥ 40%")
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-25 (reloc_gap_s 2 s): mean ATE reduced by 39%, 8.17 → "
+                   "4.95 m (heavy-rain drives with GPS every 5 s; Kotka seed 2, de-localised with and without the map "
+                   "before, is 15.2 → 4.7 m now that its VO's 2.3 s re-initialisation is a lost track; Helsinki seed "
+                   "2 4.28 → 5.05 m); 2026-11-24: 10%, 11.98 → 10.79 m; needs ≥ 40%")
 def test_heavy_rain_reduces_mean_ate_by_40_percent(request):
     assert _reduction(_ok(request, "heavy-rain")) >= 0.40
 

@@ -130,3 +130,39 @@ def test_a_turn_at_a_junction_inside_the_gap_follows_the_odometrys_own_turn(tee)
         last = eng.online_estimates()[1][-1]
         errs[turn] = math.hypot(last.x() - ox, last.y() - oy - 60.0)
     assert errs[True] < 15.0 and errs[False] > 60.0, errs
+
+
+def _reinit_after(bend: tuple[RoadMap, np.ndarray], gap_s: float, cfg: FusionConfig) -> float:
+    """10 m/s east on the straight, a fix every second for the first 100 s only; the VO out for ``gap_s`` from
+    110 s and resuming with its constant-velocity guess turned 150° (a re-initialisation that carried a wrong
+    turn over the gap), its steps true in that frame from then on. Returns the online error 20 s later (m)."""
+    road, (ox, oy) = bend
+    eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
+    prev = None
+    resume = 1100 + round(10 * gap_s)
+    for k in range(resume + 201):
+        x, y, yaw = _pose_at(1.0 * k)
+        if k % 10 == 0 and k <= 1000:
+            lat, lon = road.projection.to_geo(x + ox, y + oy)
+            eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
+        if 1100 < k < resume:
+            continue
+        pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x + ox, y + oy, 0.0))
+        rel = gtsam.Pose3() if prev is None else prev.between(pose)
+        if k == resume:
+            rel = gtsam.Pose3(gtsam.Rot3.Yaw(math.radians(150.0)), rel.translation())
+        eng.add_odometry(0.1 * k, rel.matrix())
+        prev = pose
+    x, y, _ = _pose_at(float(resume + 200))
+    est = eng.online_estimates()[1][-1]
+    return math.hypot(est.x() - x - ox, est.y() - y - oy)
+
+
+def test_a_gap_of_two_and_a_half_seconds_is_a_lost_track(bend):
+    """A VO out for 2.5 s re-initialised (it could not re-match the gap): its guessed turn is not the motion.
+    With the default ``reloc_gap_s`` (2 s) the step across the gap follows the road and the estimate stays on
+    it (within 10 m 200 m later); taken as a bridged gap (``reloc_gap_s`` 3 s, the old default) the guess turns
+    the estimate off the road and it runs the wrong way (over 100 m off)."""
+    assert FusionConfig().reloc_gap_s < 2.5
+    assert _reinit_after(bend, 2.5, FusionConfig()) < 10.0
+    assert _reinit_after(bend, 2.5, FusionConfig(reloc_gap_s=3.0)) > 100.0

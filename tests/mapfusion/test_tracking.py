@@ -169,3 +169,21 @@ def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(float(road.xy_m[i, 0]), float(road.xy_m[i, 1]), 0.0))
     held = fixes._agrees(loc, pred)
     assert held == (threshold > 0 and rival >= threshold - 1e-9) or abs(rival - threshold) < 1e-6
+
+
+@settings(max_examples=20, deadline=None)
+@given(cap=st.integers(10, 5_000), sigma_m=st.floats(1.0, 2000.0), factor=st.floats(1.0, 2.0))
+def test_a_start_spreads_at_most_road_fix_particles_per_scale_band(road, cap, sigma_m, factor):
+    """However large the region a start covers (3 σ of the estimate), the particles it spreads are at most
+    road_fix_particles per scale band (issue 21: a region grown by a long stretch without a fix costs no more);
+    a cap under the 1000 a start spreads at least is the count itself."""
+    from mapfusion.relocalise import SCALE_BAND
+    cfg = dataclasses.replace(ON, road_fix_particles=cap, road_fix_scale_factor=factor)
+    fixes = RoadFixes(road, cfg, Counters())
+    x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
+    fixes.step(0, 10.0, (0.0, 0.0, 0.0), 1.0, gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0)), sigma_m)
+    bands = max(1.0, 2.0 * math.log(factor) / math.log(SCALE_BAND))
+    assert fixes.particles is not None and fixes.starts == 1
+    assert len(fixes.particles) <= int(bands * cap)
+    if cap <= 1000:
+        assert len(fixes.particles) == int(bands * cap)
