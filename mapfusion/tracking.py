@@ -21,7 +21,8 @@ posterior near it (they preferred another place without ruling its own out). A n
 or a step without one) must first hold, confident and continuous, over ``road_fix_hold_m``. Particles that
 give no confident answer over ``road_fix_restart_m`` start again around the estimate: a posterior spread
 for long gathers again on look-alike roads far away. A used GPS fix stops them. Their number adapts to
-how settled the posterior is (``road_fix_kld_epsilon``: KLD-sampling).
+how settled the posterior is (``road_fix_kld_epsilon``: KLD-sampling), and a start spreads at most
+``road_fix_particles`` (per scale band) however large its region.
 """
 
 from __future__ import annotations
