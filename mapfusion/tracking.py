@@ -44,7 +44,18 @@ from .track import Alignment, Track, planar_of
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RoadFixes", "RoadFixing"]
+__all__ = ["RoadFixes", "RoadFixing", "particle_config"]
+
+
+def particle_config(cfg: FusionConfig) -> FusionConfig:
+    """The road fixes' particles' own view of the configuration: no distance before an answer (they start
+    where the vehicle is), the fix's disc and mass, their offsets and turns back, their adaptive count and
+    the start's cap."""
+    return dataclasses.replace(cfg, reloc_min_distance_m=0.0, reloc_converge_radius_m=cfg.road_fix_cluster_m,
+                               reloc_converge_mass=cfg.road_fix_min_mass,
+                               reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
+                               reloc_uturn_probability=cfg.road_fix_uturn_probability,
+                               reloc_kld_epsilon=cfg.road_fix_kld_epsilon, reloc_particles=cfg.road_fix_particles)
 
 
 class RoadFixes:
@@ -172,15 +183,7 @@ class RoadFixes:
     def _start(self, x: float, y: float, yaw: float, scale: float, pred: gtsam.Pose3, sigma_m: float) -> None:
         cfg = self.cfg
         if self._filter is None:  # (one filter, started afresh each time: its exits table is built once)
-            # the particles' own view: no distance before an answer (they start where the vehicle is), the fix's
-            # disc, their offsets and turns back
-            pcfg = dataclasses.replace(cfg, reloc_min_distance_m=0.0, reloc_converge_radius_m=cfg.road_fix_cluster_m,
-                                       reloc_converge_mass=cfg.road_fix_min_mass,
-                                       reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
-                                       reloc_uturn_probability=cfg.road_fix_uturn_probability,
-                                       reloc_kld_epsilon=cfg.road_fix_kld_epsilon,
-                                       reloc_particles=cfg.road_fix_particles)
-            self._filter = RoadParticles(self.road, pcfg, cfg.reloc_seed)
+            self._filter = RoadParticles(self.road, particle_config(cfg), cfg.reloc_seed)
         self.particles = self._filter
         f = cfg.road_fix_scale_factor
         # around the estimate, as far as it may be off: its marginal's 3 σ, or 3 × what the odometry may have
