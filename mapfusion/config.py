@@ -760,6 +760,16 @@ class FusionConfig:
                                        "(in log) to the fix's cluster's scale: the map keeps observing the scale "
                                        "after GPS ends (0: the scale GPS measured stays).", min=0.0, max=1.0,
                                        source="issue 16 item 3")
+    road_fix_steady_start: bool = param(False, "The particles start only once the odometry's heading turned by at "
+                                        "most road_fix_offset_max_deg over its last reloc_step_m (false: at once, "
+                                        "the default): "
+                                        "they start heading along their roads, and mid-turn the right ones would "
+                                        "carry the rest of the turn in their offsets.", source="issue 17: a "
+                                        "kidnapped run re-anchored at a junction")
+    road_fix_while_searching: bool = param(False, "Road fixes go on while a map_relocalisation search runs (false: "
+                                           "they wait for its answer: the search questions the very estimate they "
+                                           "start around, and a re-anchoring restarts them).", source="issue 17: "
+                                           "kidnapped runs")
     road_fix_drift: float = param(0.1, "What the odometry may drift, as a fraction of the distance driven: the "
                                   "gate's allowance since its last answer, and a restart's radius (× 3) since the "
                                   "last fix (GPS's or a road fix).", min=0.0,

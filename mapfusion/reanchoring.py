@@ -63,7 +63,7 @@ class Reanchoring:
         forgotten: the path every re-anchoring takes (GPS's and the map's)."""
         assert self._smoother is not None
         self._smoother.restart_from(k, pose, noise, self._step)
-        self._road_fixes.particles = None  # (they start again around the re-anchored estimate)
+        self._road_fixes.reanchored()
         self._pos_sigma = self._lat_sigma = sigma_m
         self._association.reset()
 

@@ -37,7 +37,7 @@ import numpy as np
 from . import factors
 from .config import FusionConfig
 from .counters import Counters
-from .relocalise import Located, Region, RoadParticles
+from .relocalise import Located, Region, RoadParticles, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
 from .track import Alignment, Track, planar_of
@@ -79,11 +79,18 @@ class RoadFixes:
         self._held_m = 0.0  # driving over which the answer has been confident and continuous
         self._ref = (0.0, 0.0, 0.0, 0.0)  # the last fix added and the estimate then, or the start's estimate twice
         self._ref_pending = False  # the reference's estimate is taken at the next frame (after the fix's update)
+        self._pending: tuple[float, float, float] | None = None  # odometry pose a start's steadiness is measured from
         self._ref_slack_m = 0.0  # how far from the reference an answer may lie besides drift (the start's radius)
 
     def gps_used(self, t: float) -> None:
         """A GPS fix entered the graph: it places the estimate, the particles stop."""
         self.last_gps_t = t
+        self.particles = None
+        self._unfixed_m = 0.0
+
+    def reanchored(self) -> None:
+        """The smoother was re-anchored (by GPS or the map): the particles start again around the new estimate,
+        whose σ is the re-anchoring's — the drift since the last fix no longer widens their region."""
         self.particles = None
         self._unfixed_m = 0.0
 
@@ -100,7 +107,8 @@ class RoadFixes:
         if self._ref_pending:  # the estimate the last fix moved: this frame's prediction starts from it
             self._ref, self._ref_pending = (self._ref[0], self._ref[1], pred.x(), pred.y()), False
         if self.particles is None:
-            self._start(x, y, yaw, scale, pred, sigma_m)
+            if self._steady(x, y, yaw, scale):
+                self._start(x, y, yaw, scale, pred, sigma_m)
             return None
         if len(self.particles) == 0:  # no road in the region: start again from the next frame's estimate
             self.particles = None
@@ -180,11 +188,27 @@ class RoadFixes:
             (np.hypot(xy[:, 0] - loc.x_m, xy[:, 1] - loc.y_m) > cfg.road_fix_cluster_m)
         return float(np.exp(p.logw[near]).sum())
 
+    def _steady(self, x: float, y: float, yaw: float, scale: float) -> bool:
+        """The odometry's heading turned by at most ``road_fix_offset_max_deg`` over its last ``reloc_step_m``:
+        the particles start heading along their roads, which is where the vehicle heads only when it is not
+        turning (started mid-turn at a junction, the particles on the road it turns into carry the turn still
+        to come in their offset, more than they may absorb, and die)."""
+        if not self.cfg.road_fix_steady_start:
+            return True
+        if self._pending is None:
+            self._pending = (x, y, yaw)
+            return False
+        px, py, pyaw = self._pending
+        if math.hypot(x - px, y - py) * scale < self.cfg.reloc_step_m:
+            return False
+        self._pending = (x, y, yaw)
+        return abs(math.remainder(yaw - pyaw, 2.0 * math.pi)) <= math.radians(self.cfg.road_fix_offset_max_deg)
+
     def _start(self, x: float, y: float, yaw: float, scale: float, pred: gtsam.Pose3, sigma_m: float) -> None:
         cfg = self.cfg
         if self._filter is None:  # (one filter, started afresh each time: its exits table is built once)
             self._filter = RoadParticles(self.road, particle_config(cfg), cfg.reloc_seed)
-        self.particles = self._filter
+        self.particles, self._pending = self._filter, None
         f = cfg.road_fix_scale_factor
         # around the estimate, as far as it may be off: its marginal's 3 σ, or 3 × what the odometry may have
         # drifted since the last fix (a restart after a long stretch without one)
@@ -208,12 +232,16 @@ class RoadFixing:
     _road_fixes: RoadFixes
     _pos_sigma: float
     _smoother: Smoother | None
+    _search: Search
 
     def _road_fix(self, k: int, pred: gtsam.Pose3) -> bool:
         """The road particles' fix on frame k while GPS is silent; True if added. Each fix also moves the
         odometry's scale ``road_fix_scale_gain`` of the way (in log) to the fix's (the map observes the scale)."""
         rf = self._road_fixes
         if not rf.enabled:
+            return False
+        if self._search.active is not None and not self.cfg.road_fix_while_searching:
+            rf.particles = None  # (they start afresh around the estimate the search leaves)
             return False
         assert self.alignment is not None and self._smoother is not None
         fix = rf.step(k, self.track.t[k], planar_of(self.track.raw[k]), self.alignment.scale, pred, self._pos_sigma)

@@ -187,3 +187,74 @@ def test_a_start_spreads_at_most_road_fix_particles_per_scale_band(road, cap, si
     assert len(fixes.particles) <= int(bands * cap)
     if cap <= 1000:
         assert len(fixes.particles) == int(bands * cap)
+
+
+@settings(max_examples=20, deadline=None)
+@given(unfixed_m=st.floats(0.0, 5000.0), sigma_m=st.floats(0.5, 100.0))
+def test_a_re_anchoring_restarts_the_particles_around_the_new_estimate_in_the_start_radius(road, unfixed_m, sigma_m):
+    """A start after a long stretch without a fix spreads over 3 × the drift since (the estimate may be that far
+    off); after a re-anchoring the estimate is placed afresh, so the next start's region is the start radius
+    (or 3 σ) again, not the old drift's."""
+    fixes = RoadFixes(road, ON, Counters())
+    x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
+    pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0))
+    fixes._unfixed_m = unfixed_m
+    fixes.step(0, 10.0, (0.0, 0.0, 0.0), 1.0, pred, sigma_m)
+    grown = max(ON.road_fix_radius_m, 3.0 * sigma_m, 3.0 * ON.road_fix_drift * unfixed_m)
+    assert fixes.starts == 1 and fixes._ref_slack_m == pytest.approx(grown)
+    fixes.reanchored()
+    assert fixes.particles is None
+    fixes.step(1, 10.1, (0.0, 0.0, 0.0), 1.0, pred, sigma_m)
+    assert fixes.starts == 2 and fixes._ref_slack_m == pytest.approx(max(ON.road_fix_radius_m, 3.0 * sigma_m))
+
+
+@settings(max_examples=20, deadline=None)
+@given(turn_deg_per_m=st.floats(1.5, 10.0), straight_m=st.floats(6.0, 30.0))
+def test_a_steady_start_waits_for_the_turn_to_end(road, turn_deg_per_m, straight_m):
+    """With road_fix_steady_start the particles do not start while the odometry turns by more than
+    road_fix_offset_max_deg over reloc_step_m (here at least 7.5° per 5 m), and start once it has driven
+    straight for reloc_step_m; without it they start on the first frame."""
+    cfg = dataclasses.replace(ON, road_fix_steady_start=True)
+    x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
+    pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0))
+    fixes, eager = RoadFixes(road, cfg, Counters()), RoadFixes(road, ON, Counters())
+    x = y = yaw = 0.0
+    k, t = 0, 10.0
+    for _ in range(60):  # a 60 m turn, 1 m a frame
+        eager.step(k, t, (x, y, yaw), 1.0, pred, 1.0)
+        fixes.step(k, t, (x, y, yaw), 1.0, pred, 1.0)
+        x, y, yaw = x + math.cos(yaw), y + math.sin(yaw), yaw + math.radians(turn_deg_per_m)
+        k, t = k + 1, t + 0.1
+    assert eager.starts == 1 and fixes.starts == 0
+    for _ in range(int(straight_m) + 1):  # then straight on
+        fixes.step(k, t, (x, y, yaw), 1.0, pred, 1.0)
+        x, y = x + math.cos(yaw), y + math.sin(yaw)
+        k, t = k + 1, t + 0.1
+    assert fixes.starts == 1
+
+
+def test_road_fixes_wait_while_a_search_runs(road):
+    """With map_relocalisation a search starts when GPS falls silent (a second opinion on where GPS left the
+    estimate); by default no road fix enters the graph while it runs (the fixes' particles start around the
+    very estimate the search questions), and the fixes come once it has ended. With road_fix_while_searching
+    they do come during the search."""
+    drive = _wandering(road, 1)
+    seen = {}
+    for waits in (True, False):
+        cfg = dataclasses.replace(ON, map_relocalisation=True, road_fix_while_searching=not waits)
+        eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
+        x, y, ox, oy, oyaw = drive
+        during = after = searched = 0
+        for k in range(len(x)):
+            if k % 10 == 0 and k < 400:
+                lat, lon = road.projection.to_geo(x[k], y[k])
+                eng.add_gps(0.1 * k, float(lat), float(lon), None, 1.0)
+            searching, before = eng._search.active is not None, eng.counters.road_fixes
+            eng.add_odometry(0.1 * k, odometry_step(ox, oy, oyaw, k))
+            new = eng.counters.road_fixes - before
+            searched += searching
+            during += new if searching else 0
+            after += new if not searching and k >= 400 else 0
+        seen[waits] = (during, after, searched)
+    assert seen[True][2] > 0 and seen[True][0] == 0 and seen[True][1] > 0, seen
+    assert seen[False][0] > 0, seen
