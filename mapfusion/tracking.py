@@ -79,20 +79,28 @@ class RoadFixes:
         self._held_m = 0.0  # driving over which the answer has been confident and continuous
         self._ref = (0.0, 0.0, 0.0, 0.0)  # the last fix added and the estimate then, or the start's estimate twice
         self._ref_pending = False  # the reference's estimate is taken at the next frame (after the fix's update)
+        self._after_reanchoring = False  # the next start follows a re-anchoring: it waits for a steady heading
         self._pending: tuple[float, float, float] | None = None  # odometry pose a start's steadiness is measured from
         self._ref_slack_m = 0.0  # how far from the reference an answer may lie besides drift (the start's radius)
 
     def gps_used(self, t: float) -> None:
         """A GPS fix entered the graph: it places the estimate, the particles stop."""
         self.last_gps_t = t
-        self.particles = None
+        self.drop()
         self._unfixed_m = 0.0
 
     def reanchored(self) -> None:
         """The smoother was re-anchored (by GPS or the map): the particles start again around the new estimate,
-        whose σ is the re-anchoring's — the drift since the last fix no longer widens their region."""
-        self.particles = None
+        whose σ is the re-anchoring's — the drift since the last fix no longer widens their region — once the
+        heading is steady (:meth:`_steady`)."""
+        self.drop()
         self._unfixed_m = 0.0
+        self._after_reanchoring = True
+
+    def drop(self) -> None:
+        """Stop the particles: they start afresh (around the estimate then) at a later frame."""
+        self.particles = None
+        self._pending = None
 
     def step(self, k: int, t: float, raw_xy_yaw: tuple[float, float, float], scale: float, pred: gtsam.Pose3,
              sigma_m: float) -> gtsam.NonlinearFactor | None:
@@ -111,7 +119,7 @@ class RoadFixes:
                 self._start(x, y, yaw, scale, pred, sigma_m)
             return None
         if len(self.particles) == 0:  # no road in the region: start again from the next frame's estimate
-            self.particles = None
+            self.drop()
             return None
         self._moved += math.hypot(x - self._last_xy[0], y - self._last_xy[1])
         self._last_xy = (x, y)
@@ -149,7 +157,7 @@ class RoadFixes:
             self._unsure_m += self._since_fix_m
             self._since_fix_m = self._held_m = 0.0
             if self._unsure_m >= cfg.road_fix_restart_m:  # no fix for too long: start again around the estimate
-                self.particles = None
+                self.drop()
             return None
         held, self._held_m = self._held_m, self._held_m + self._since_fix_m
         self._since_fix_m = self._unsure_m = self._since_ref_m = self._ref_slack_m = 0.0
@@ -189,11 +197,13 @@ class RoadFixes:
         return float(np.exp(p.logw[near]).sum())
 
     def _steady(self, x: float, y: float, yaw: float, scale: float) -> bool:
-        """The odometry's heading turned by at most ``road_fix_offset_max_deg`` over its last ``reloc_step_m``:
-        the particles start heading along their roads, which is where the vehicle heads only when it is not
-        turning (started mid-turn at a junction, the particles on the road it turns into carry the turn still
-        to come in their offset, more than they may absorb, and die)."""
-        if not self.cfg.road_fix_steady_start:
+        """May the particles start: the odometry's heading turned by at most ``road_fix_offset_max_deg`` over its
+        last ``reloc_step_m`` — after a re-anchoring always, at every start with ``road_fix_steady_start``. The
+        particles start heading along their roads, which is where the vehicle heads only when it is not turning:
+        started mid-turn at a junction, those on the road it turns into carry the turn still to come in their
+        offsets, more than they may absorb, and die. A search converges where the path turns, so the re-anchoring
+        it makes (and the start after it) falls at a junction."""
+        if not (self.cfg.road_fix_steady_start or self._after_reanchoring):
             return True
         if self._pending is None:
             self._pending = (x, y, yaw)
@@ -208,7 +218,7 @@ class RoadFixes:
         cfg = self.cfg
         if self._filter is None:  # (one filter, started afresh each time: its exits table is built once)
             self._filter = RoadParticles(self.road, particle_config(cfg), cfg.reloc_seed)
-        self.particles, self._pending = self._filter, None
+        self.particles, self._pending, self._after_reanchoring = self._filter, None, False
         f = cfg.road_fix_scale_factor
         # around the estimate, as far as it may be off: its marginal's 3 σ, or 3 × what the odometry may have
         # drifted since the last fix (a restart after a long stretch without one)
@@ -241,7 +251,7 @@ class RoadFixing:
         if not rf.enabled:
             return False
         if self._search.active is not None and not self.cfg.road_fix_while_searching:
-            rf.particles = None  # (they start afresh around the estimate the search leaves)
+            rf.drop()  # (they start afresh around the estimate the search leaves)
             return False
         assert self.alignment is not None and self._smoother is not None
         fix = rf.step(k, self.track.t[k], planar_of(self.track.raw[k]), self.alignment.scale, pred, self._pos_sigma)

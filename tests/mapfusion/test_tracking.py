@@ -205,19 +205,23 @@ def test_a_re_anchoring_restarts_the_particles_around_the_new_estimate_in_the_st
     fixes.reanchored()
     assert fixes.particles is None
     fixes.step(1, 10.1, (0.0, 0.0, 0.0), 1.0, pred, sigma_m)
+    fixes.step(2, 10.2, (ON.reloc_step_m, 0.0, 0.0), 1.0, pred, sigma_m)  # (a start after it waits for a straight step)
     assert fixes.starts == 2 and fixes._ref_slack_m == pytest.approx(max(ON.road_fix_radius_m, 3.0 * sigma_m))
 
 
+@pytest.mark.parametrize("why", ["every start", "after a re-anchoring"])
 @settings(max_examples=20, deadline=None)
 @given(turn_deg_per_m=st.floats(1.5, 10.0), straight_m=st.floats(6.0, 30.0))
-def test_a_steady_start_waits_for_the_turn_to_end(road, turn_deg_per_m, straight_m):
-    """With road_fix_steady_start the particles do not start while the odometry turns by more than
-    road_fix_offset_max_deg over reloc_step_m (here at least 7.5° per 5 m), and start once it has driven
-    straight for reloc_step_m; without it they start on the first frame."""
-    cfg = dataclasses.replace(ON, road_fix_steady_start=True)
+def test_a_steady_start_waits_for_the_turn_to_end(road, why, turn_deg_per_m, straight_m):
+    """After a re-anchoring (or at every start with road_fix_steady_start) the particles do not start while the
+    odometry turns by more than road_fix_offset_max_deg over reloc_step_m (here at least 7.5° per 5 m), and
+    start once it has driven straight for reloc_step_m; a first start with the defaults is on the first frame."""
+    cfg = dataclasses.replace(ON, road_fix_steady_start=why == "every start")
     x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0))
     fixes, eager = RoadFixes(road, cfg, Counters()), RoadFixes(road, ON, Counters())
+    if why == "after a re-anchoring":
+        fixes.reanchored()
     x = y = yaw = 0.0
     k, t = 0, 10.0
     for _ in range(60):  # a 60 m turn, 1 m a frame
