@@ -19,7 +19,7 @@ from .errors import EngineError
 from .gps_gate import GpsGate
 from .initialisation import Initialiser
 from .metrics import umeyama
-from .relocalise import Located, Region, RoadParticles, Search
+from .relocalise import Located, Region, RoadParticles, Search, enclosing_disc
 from .roadmap import RoadMap
 from .smoother import Smoother
 from .track import Alignment, JumpGuard, Track, level, planar_of, spread_back
@@ -57,6 +57,7 @@ class Reanchoring:
         self._follower: RoadParticles | None = None
         self.relocalised_at = []  # (time, distance searched) of each map re-localisation
         self._checked_fix_t = math.nan  # the last fix whose silence started a search
+        self._map_anchor: tuple[int, Region] | None = None  # the last map re-anchoring: its frame, its search's region
 
     def _restart_from(self, k: int, pose: gtsam.Pose3, noise, sigma_m: float) -> None:
         """The smoother afresh at frame k (a prior on ``pose``), the estimate's σ set, the road association
@@ -132,7 +133,7 @@ class Reanchoring:
             assoc.became_lost = False
             if search.active is None:  # (a running search goes on: its particles know more than a new one's)
                 x, y = assoc.explained_xy or (pred.x(), pred.y())
-                search.begin(search.lost_region(x, y, assoc.unexplained_m))
+                search.begin(self._doubting(k, search.lost_region(x, y, assoc.unexplained_m)))
         elif search.active is None and self._gps_went_silent(k):  # a second opinion on where GPS left it
             search.begin(Region(pred.x(), pred.y(), self.cfg.reloc_radius_m))
         search.widen_if_stuck(pred.x(), pred.y())
@@ -141,9 +142,11 @@ class Reanchoring:
         x, y, yaw = planar_of(self.track.raw[k])
         assert self.alignment is not None
         scale = self.alignment.scale
+        searched = search.active.region
         loc = search.feed(x * scale, y * scale, yaw)
         if loc is None or math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
             return
+        self._map_anchor = (k, searched)
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
         sigma_m = max(loc.spread_m, 2.0)
         sigmas = factors.pose_sigmas(StateModel.planar, max(loc.yaw_spread_rad, math.radians(2.0)), sigma_m)
@@ -153,6 +156,26 @@ class Reanchoring:
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
                  math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
         self._update()
+
+    def _doubting(self, k: int, region: Region) -> Region:
+        """The region of a search begun when the estimate is lost within ``reloc_doubt_m`` of driving after a map
+        re-anchoring: that re-anchoring may have been the wrong turn, so the region also covers the one the
+        re-anchoring's search ran in, grown by the distance driven since (the smallest disc holding both, at most
+        ``reloc_max_radius_m``)."""
+        cfg = self.cfg
+        if self._map_anchor is None or cfg.reloc_doubt_m <= 0 or self.alignment is None:
+            return region
+        k0, old = self._map_anchor
+        track = self.track
+        if k0 < track.first:
+            return region
+        pts = np.array([planar_of(track.raw[j])[:2] for j in range(k0, k + 1)])
+        driven = float(np.sum(np.hypot(*np.diff(pts, axis=0).T))) * self.alignment.scale if len(pts) > 1 else 0.0
+        if driven > cfg.reloc_doubt_m:
+            return region
+        grown = Region(old.x_m, old.y_m, old.radius_m + driven)
+        both = enclosing_disc(region, grown)
+        return Region(both.x_m, both.y_m, min(both.radius_m, cfg.reloc_max_radius_m))
 
     def _along_road(self, k: int, prev: gtsam.Pose3) -> gtsam.Pose3:
         """The step into frame k. After an odometry outage longer than ``reloc_gap_s`` with ``outage_step =

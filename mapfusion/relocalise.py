@@ -43,7 +43,7 @@ from .roadmap import RoadMap
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Region", "Located", "RoadParticles", "Relocaliser", "kld_count"]
+__all__ = ["Region", "Located", "RoadParticles", "Relocaliser", "enclosing_disc", "kld_count"]
 
 #: Vertices a particle may pass in one step (a step longer than this many short edges stops at the last).
 MAX_HOPS = 16
@@ -436,6 +436,18 @@ def _cell_ids(cx: np.ndarray, cy: np.ndarray) -> np.ndarray:
     if nx * ny <= 4 * len(cx) + 1024:
         return (cx - x0) * ny + (cy - y0)
     return np.unique(cx * 1_000_003 + cy, return_inverse=True)[1]
+
+
+def enclosing_disc(a: Region, b: Region) -> Region:
+    """The smallest disc holding both discs."""
+    d = math.hypot(b.x_m - a.x_m, b.y_m - a.y_m)
+    if d + a.radius_m <= b.radius_m:
+        return b
+    if d + b.radius_m <= a.radius_m:
+        return a
+    radius = 0.5 * (d + a.radius_m + b.radius_m)
+    f = (radius - a.radius_m) / d  # (from a's centre towards b's: d > 0 here, or one disc would hold the other)
+    return Region(a.x_m + f * (b.x_m - a.x_m), a.y_m + f * (b.y_m - a.y_m), radius)
 
 
 def kld_count(bins: int, epsilon: float, z: float = 2.326) -> int:

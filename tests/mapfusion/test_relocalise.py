@@ -3,6 +3,7 @@ posterior is a distribution, and a drive's shape alone finds it in a 1 km region
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -373,3 +374,46 @@ def test_an_adaptive_count_stays_between_its_floor_and_the_start_and_shrinks_onc
         assert np.all(p.along >= 0.0) and np.all(p.along <= road.edge_length_m[p.edge] + 1e-9)
     if p.located(float(yaw[k_prev])) is not None:  # settled: the count came down
         assert len(p) < n0
+
+
+@settings(max_examples=200, deadline=None)
+@given(ax=st.floats(-1e4, 1e4), ay=st.floats(-1e4, 1e4), ar=st.floats(0.0, 3e3),
+       bx=st.floats(-1e4, 1e4), by=st.floats(-1e4, 1e4), br=st.floats(0.0, 3e3))
+def test_the_enclosing_disc_holds_both_and_is_the_smallest(ax, ay, ar, bx, by, br):
+    """A doubted re-anchoring's next search covers both regions (issue 17): the disc holds each disc (its
+    centre's distance plus its radius within the radius) and is no larger than it must be — as large as the
+    larger disc, or as half their span along the line through the centres."""
+    from mapfusion.relocalise import Region, enclosing_disc
+
+    a, b = Region(ax, ay, ar), Region(bx, by, br)
+    e = enclosing_disc(a, b)
+    tol = 1e-6 * (1.0 + abs(ax) + abs(ay) + abs(bx) + abs(by) + ar + br)
+    for r in (a, b):
+        assert math.hypot(r.x_m - e.x_m, r.y_m - e.y_m) + r.radius_m <= e.radius_m + tol
+    d = math.hypot(bx - ax, by - ay)
+    assert e.radius_m <= max(ar, br, 0.5 * (d + ar + br)) + tol
+    assert e.radius_m >= max(ar, br) - tol
+
+
+def test_a_search_soon_after_a_map_re_anchoring_also_covers_that_search_s_region(road):
+    """Lost within reloc_doubt_m of driving after a map re-anchoring, the engine searches a region that holds both
+    the lost region and the re-anchoring's own search region grown by the distance driven since (the re-anchoring
+    may have been wrong); farther on, or with reloc_doubt_m 0, the lost region alone."""
+    x, y, yaw, _ = graph_route(road, 3, 800.0)
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, 3, noise_m=0.02)
+    cfg = FusionConfig(map_relocalisation=True)
+    eng, _ = _feed(road, cfg, x, y, ox, oy, oyaw, 300)
+    k = len(x) - 1
+    k0 = k - 300  # 300 frames (about 300 m) before the last
+    driven = float(np.sum(np.hypot(np.diff(x[k0:]), np.diff(y[k0:]))))
+    old, lost = Region(x[k0] + 500.0, y[k0], 300.0), Region(x[k], y[k], 300.0)
+    eng._map_anchor = (k0, old)
+    got = eng._doubting(k, lost)
+    for r, radius in ((lost, lost.radius_m), (old, old.radius_m + 0.9 * driven)):
+        assert math.hypot(r.x_m - got.x_m, r.y_m - got.y_m) + radius <= got.radius_m + 1e-6
+    assert got.radius_m <= cfg.reloc_max_radius_m
+    assert eng._doubting(k, lost) != lost
+    eng.cfg = dataclasses.replace(cfg, reloc_doubt_m=0.0)
+    assert eng._doubting(k, lost) == lost
+    eng.cfg = dataclasses.replace(cfg, reloc_doubt_m=0.5 * driven)
+    assert eng._doubting(k, lost) == lost
