@@ -16,6 +16,7 @@ from .association import MapAssociation
 from .config import FusionConfig, OutageStep, StateModel
 from .counters import Counters
 from .errors import EngineError
+from .geometry import cumulative_length
 from .gps_gate import GpsGate
 from .initialisation import Initialiser
 from .metrics import umeyama
@@ -170,7 +171,7 @@ class Reanchoring:
         if k0 < track.first:
             return region
         pts = np.array([planar_of(track.raw[j])[:2] for j in range(k0, k + 1)])
-        driven = float(np.sum(np.hypot(*np.diff(pts, axis=0).T))) * self.alignment.scale if len(pts) > 1 else 0.0
+        driven = float(cumulative_length(pts)[-1]) * self.alignment.scale
         if driven > cfg.reloc_doubt_m:
             return region
         grown = Region(old.x_m, old.y_m, old.radius_m + driven)

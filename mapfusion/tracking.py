@@ -218,7 +218,7 @@ class RoadFixes:
         cfg = self.cfg
         if self._filter is None:  # (one filter, started afresh each time: its exits table is built once)
             self._filter = RoadParticles(self.road, particle_config(cfg), cfg.reloc_seed)
-        self.particles, self._pending, self._after_reanchoring = self._filter, None, False
+        self.particles, self._after_reanchoring = self._filter, False
         f = cfg.road_fix_scale_factor
         # around the estimate, as far as it may be off: its marginal's 3 σ, or 3 × what the odometry may have
         # drifted since the last fix (a restart after a long stretch without one)
