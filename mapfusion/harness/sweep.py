@@ -12,6 +12,7 @@ import itertools
 import json
 import logging
 import math
+import time
 import traceback
 import warnings
 from collections.abc import Callable
@@ -378,13 +379,31 @@ def open_storage(url: str, option: str = "--storage"):
         folder = Path(u.database).parent
         if not folder.is_dir():
             raise InputError(f"{option} {url}: no such directory {folder}")
-    try:
-        with warnings.catch_warnings():  # the heartbeat is "experimental" to Optuna: no warning line on stderr
-            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-            return optuna.storages.RDBStorage(url, heartbeat_interval=HEARTBEAT_S, grace_period=GRACE_S)
-    except (sqlalchemy.exc.SQLAlchemyError, ImportError, ValueError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise InputError(f"{option} {url}: cannot open the storage ({first})") from None
+    for attempt in range(OPEN_ATTEMPTS):
+        try:
+            with warnings.catch_warnings():  # the heartbeat is "experimental" to Optuna: no warning line on stderr
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                return optuna.storages.RDBStorage(url, heartbeat_interval=HEARTBEAT_S, grace_period=GRACE_S)
+        except (sqlalchemy.exc.OperationalError, sqlalchemy.exc.IntegrityError) as exc:
+            # Two processes opening a new database at once both create its tables: the loser's
+            # CREATE TABLE or version row fails, and a second look finds the schema complete.
+            if attempt + 1 < OPEN_ATTEMPTS and any(s in str(exc) for s in _SCHEMA_RACE):
+                log.debug("storage %s: concurrent schema creation (%s), opening again", url, exc)
+                time.sleep(0.05 * (attempt + 1))
+                continue
+            raise InputError(f"{option} {url}: cannot open the storage ({_first_line(exc)})") from None
+        except (sqlalchemy.exc.SQLAlchemyError, ImportError, ValueError) as exc:
+            raise InputError(f"{option} {url}: cannot open the storage ({_first_line(exc)})") from None
+    raise AssertionError("unreachable")  # pragma: no cover - the last attempt returns or raises
+
+
+#: How often :func:`open_storage` tries, and the errors of another process creating the same schema.
+OPEN_ATTEMPTS = 10
+_SCHEMA_RACE = ("already exists", "database is locked", "UNIQUE constraint failed", "duplicate key")
+
+
+def _first_line(exc: BaseException) -> str:
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
 
 
 def fail_orphaned_trials(storage, study_name: str) -> int:

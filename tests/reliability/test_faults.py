@@ -4,10 +4,12 @@ again on resume; a tune trial killed mid-way is marked failed on resume."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import resource
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -157,8 +159,10 @@ def test_a_killed_tune_trial_is_marked_failed_on_resume(tmp_path):
     out = tmp_path / "study"
     url = f"sqlite:///{out / 'study.db'}"
     cmd = _cli("tune", str(sc), "--out", str(out), "--study", "s")
-    proc = subprocess.Popen([*cmd, "--trials", "200"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
+    err = tmp_path / "tune.err"
+    with err.open("w") as err_file:
+        proc = subprocess.Popen([*cmd, "--trials", "200"], stdout=subprocess.DEVNULL, stderr=err_file,
+                                start_new_session=True)
 
     def states() -> list:
         try:
@@ -166,8 +170,25 @@ def test_a_killed_tune_trial_is_marked_failed_on_resume(tmp_path):
         except Exception:  # noqa: BLE001 - the study is not there yet
             return []
 
+    def watched() -> list:
+        # While the tune runs, read without Optuna: its storage would create the tables the tune is
+        # creating at the same moment (a race the tune survives, but the watcher need not take part).
+        db = out / "study.db"
+        if not db.exists():
+            return []
+        try:
+            with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5)) as con:
+                rows = con.execute("SELECT t.state FROM trials t JOIN studies s ON t.study_id = s.study_id "
+                                   "WHERE s.study_name = 's'").fetchall()
+        except sqlite3.Error:  # not created yet, or mid-write
+            return []
+        return [TrialState[r[0]] for r in rows]
+
     deadline = time.monotonic() + 180
-    while time.monotonic() < deadline and not (TrialState.COMPLETE in states() and TrialState.RUNNING in states()):
+    while time.monotonic() < deadline and not {TrialState.COMPLETE, TrialState.RUNNING} <= set(watched()):
+        if proc.poll() is not None:
+            pytest.fail(f"the tune ended on its own (exit {proc.returncode}) before it could be killed: "
+                        f"{err.read_text()[-400:]}")
         time.sleep(0.02)
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait(timeout=30)
