@@ -648,6 +648,11 @@ class FusionConfig:
                                      "GPS places the estimate and no search runs (0: searches regardless of GPS).",
                                      unit="s", min=0.0,
                                      max=86400.0, source="issue 17: a biased fix window leaves the estimate off")
+    reloc_under_gps: bool = param(True, "With map_relocalisation: once the estimate is lost while GPS still comes "
+                                  "(the fixes may share a bias the map disagrees with), a search runs beside GPS; it "
+                                  "never moves the estimate while fixes come, and when GPS falls silent "
+                                  "(reloc_after_gps_s) its particles go on as the search GPS's silence begins.",
+                                  source="issue 17: a biased fix window is seen as lost long before GPS ends")
     reloc_particles_per_m: float = param(10.0, "Particles per metre of road (both directions) in the search region, "
                                          "up to reloc_particles.", unit="1/m", min=0.01, max=1000.0,
                                          source="issue 17; by measurement: kidnapped seeds 1-10 / held-out 11-20, "

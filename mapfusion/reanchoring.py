@@ -59,6 +59,7 @@ class Reanchoring:
         self.relocalised_at = []  # (time, distance searched) of each map re-localisation
         self._checked_fix_t = math.nan  # the last fix whose silence started a search
         self._map_anchor: tuple[int, Region] | None = None  # the last map re-anchoring: its frame, its search's region
+        self._beside_gps = False  # the running search began while GPS came (it has not acted yet)
 
     def _restart_from(self, k: int, pose: gtsam.Pose3, noise, sigma_m: float) -> None:
         """The smoother afresh at frame k (a prior on ``pose``), the estimate's σ set, the road association
@@ -123,8 +124,11 @@ class Reanchoring:
         assoc, search = self._association, self._search
         fixes = self.initialiser.fixes
         if fixes and self.track.t[k] - fixes[-1][0] < self.cfg.reloc_after_gps_s:
-            search.active = None  # GPS is here: it places the estimate, not a search of the map
+            self._search_beside_gps(k, pred)  # GPS is here: it places the estimate, not a search of the map
             return
+        if self._beside_gps:  # GPS fell silent with a search running beside it: that search is the silence's
+            self._beside_gps = False
+            self._gps_went_silent(k)
         gap_s = self.track.t[k] - self.track.t[k - 1]
         if gap_s > self.cfg.reloc_gap_s:  # the odometry lost track: where it resumed is not to be trusted
             prev = self.track.online[k - 1] or pred
@@ -157,6 +161,30 @@ class Reanchoring:
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
                  math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
         self._update()
+
+    def _search_beside_gps(self, k: int, pred: gtsam.Pose3) -> None:
+        """While GPS comes: no search unless the estimate is lost (``reloc_under_gps``); then one runs, fed but
+        never acted on, so that when GPS falls silent its particles already know where the odometry's path fits
+        the roads (a fix window sharing one bias keeps the estimate off the roads long before GPS ends)."""
+        assoc, search = self._association, self._search
+        if not self.cfg.reloc_under_gps or self.alignment is None or not (assoc.lost or self._beside_gps):
+            search.active = None
+            self._beside_gps = False
+            return
+        if search.active is None or not self._beside_gps:
+            assoc.became_lost = False
+            x, y = assoc.explained_xy or (pred.x(), pred.y())
+            search.begin(search.lost_region(x, y, assoc.unexplained_m))
+            self._beside_gps = True
+        assert search.active is not None
+        if search.active.answer is None:  # (a converged search follows the vehicle however far it drives)
+            search.widen_if_stuck(pred.x(), pred.y())
+        x, y, yaw = planar_of(self.track.raw[k])
+        scale = self.alignment.scale
+        loc = search.active.add(x * scale, y * scale, yaw)  # (not search.feed: a converged search goes on)
+        if loc is not None and math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
+            search.active = None  # the map confirms GPS: a search that found the estimate ends
+            self._beside_gps = False
 
     def _doubting(self, k: int, region: Region) -> Region:
         """The region of a search begun when the estimate is lost within ``reloc_doubt_m`` of driving after a map

@@ -482,6 +482,7 @@ class Relocaliser:
         self.way_points_in_region = 0
         self._held_m = 0.0  # driving over which the posterior has stayed converged on one moving cluster
         self._held: Located | None = None
+        self.answer: Located | None = None  # the converged answer at the last step (None: not converged)
 
     def add(self, x: float, y: float, yaw: float) -> Located | None:
         """One odometry pose; the converged answer, or None (not yet, or nothing in the region)."""
@@ -509,7 +510,8 @@ class Relocaliser:
             self.cfg.reloc_converge_radius_m
         self._held_m = self._held_m + moved * loc.scale if same and loc is not None else 0.0  # (metres)
         self._held = loc
-        return loc if loc is not None and self._held_m >= self.cfg.reloc_hold_m else None
+        self.answer = loc if loc is not None and self._held_m >= self.cfg.reloc_hold_m else None
+        return self.answer
 
 
 class Search:
