@@ -653,6 +653,10 @@ class FusionConfig:
                                   "never moves the estimate while fixes come, and when GPS falls silent "
                                   "(reloc_after_gps_s) its particles go on as the search GPS's silence begins.",
                                   source="issue 17: a biased fix window is seen as lost long before GPS ends")
+    reloc_mend_back: bool = param(True, "A map re-anchoring also moves the final estimates of the frames its search "
+                                  "matched to the roads (from the search's first frame on), rigidly by the "
+                                  "re-anchoring's correction; the online estimates stay as they were.",
+                                  source="issue 17: the path the search matched lies where its end was found")
     reloc_particles_per_m: float = param(10.0, "Particles per metre of road (both directions) in the search region, "
                                          "up to reloc_particles.", unit="1/m", min=0.01, max=1000.0,
                                          source="issue 17; by measurement: kidnapped seeds 1-10 / held-out 11-20, "

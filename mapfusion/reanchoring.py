@@ -148,6 +148,9 @@ class Reanchoring:
         assert self.alignment is not None
         scale = self.alignment.scale
         searched = search.active.region
+        if search.active.k0 is None:
+            search.active.k0 = k
+        searched_from = search.active.k0
         loc = search.feed(x * scale, y * scale, yaw)
         if loc is None or math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
             return
@@ -156,11 +159,35 @@ class Reanchoring:
         sigma_m = max(loc.spread_m, 2.0)
         sigmas = factors.pose_sigmas(StateModel.planar, max(loc.yaw_spread_rad, math.radians(2.0)), sigma_m)
         self._restart_from(k, pose, factors.diagonal(sigmas), sigma_m)
+        if self.cfg.reloc_mend_back:
+            self._mend_searched(searched_from, k, pred, pose)
         self.counters.map_relocalisations += 1
         self.relocalised_at.append((self.track.t[k], loc.driven_m))
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
                  math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
         self._update()
+
+    def _mend_searched(self, k0: int, k1: int, was: gtsam.Pose3, now: gtsam.Pose3) -> None:
+        """A map re-anchoring moved frame k1 from ``was`` to ``now``; its search matched the odometry's path from
+        frame k0 on to the roads, so that path lies where the re-anchoring puts its end: the final estimates of
+        frames k0 … k1-1 are moved rigidly by the same correction (about z). The online estimates stay as they
+        were (causal)."""
+        sm, track = self._smoother, self.track
+        assert sm is not None
+        k0 = max(k0, track.first)
+        dyaw = math.remainder(now.rotation().yaw() - was.rotation().yaw(), 2.0 * math.pi)
+        c, s = math.cos(dyaw), math.sin(dyaw)
+        turn = gtsam.Rot3.Yaw(dyaw)
+        moved = 0
+        for j in range(k0, k1):
+            p = sm.smoothed.get(j)
+            if p is None:
+                continue
+            dx, dy = p.x() - was.x(), p.y() - was.y()
+            sm.smoothed[j] = gtsam.Pose3(turn.compose(p.rotation()),
+                                         gtsam.Point3(now.x() + c * dx - s * dy, now.y() + s * dx + c * dy, p.z()))
+            moved += 1
+        log.info("t=%.1f s: the map's correction moved the %d frames its search matched", track.t[k1], moved)
 
     def _search_beside_gps(self, k: int, pred: gtsam.Pose3) -> None:
         """While GPS comes: no search unless the estimate is lost (``reloc_under_gps``); then one runs, fed but
@@ -181,6 +208,8 @@ class Reanchoring:
             search.widen_if_stuck(pred.x(), pred.y())
         x, y, yaw = planar_of(self.track.raw[k])
         scale = self.alignment.scale
+        if search.active.k0 is None:
+            search.active.k0 = k
         loc = search.active.add(x * scale, y * scale, yaw)  # (not search.feed: a converged search goes on)
         if loc is not None and math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
             search.active = None  # the map confirms GPS: a search that found the estimate ends

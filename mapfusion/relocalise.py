@@ -483,6 +483,7 @@ class Relocaliser:
         self._held_m = 0.0  # driving over which the posterior has stayed converged on one moving cluster
         self._held: Located | None = None
         self.answer: Located | None = None  # the converged answer at the last step (None: not converged)
+        self.k0: int | None = None  # the engine's frame of the first pose fed (set by the engine)
 
     def add(self, x: float, y: float, yaw: float) -> Located | None:
         """One odometry pose; the converged answer, or None (not yet, or nothing in the region)."""
