@@ -147,20 +147,17 @@ class Reanchoring:
         x, y, yaw = planar_of(self.track.raw[k])
         assert self.alignment is not None
         scale = self.alignment.scale
-        searched = search.active.region
-        if search.active.k0 is None:
-            search.active.k0 = k
-        searched_from = search.active.k0
-        loc = search.feed(x * scale, y * scale, yaw)
+        active = search.active
+        loc = search.feed(x * scale, y * scale, yaw, k)
         if loc is None or math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
             return
-        self._map_anchor = (k, searched)
+        self._map_anchor = (k, active.region)
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
         sigma_m = max(loc.spread_m, 2.0)
         sigmas = factors.pose_sigmas(StateModel.planar, max(loc.yaw_spread_rad, math.radians(2.0)), sigma_m)
         self._restart_from(k, pose, factors.diagonal(sigmas), sigma_m)
         if self.cfg.reloc_mend_back:
-            self._mend_searched(searched_from, k, pred, pose)
+            self._mend_searched(active.k0 if active.k0 is not None else k, k, pred, pose)
         self.counters.map_relocalisations += 1
         self.relocalised_at.append((self.track.t[k], loc.driven_m))
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
@@ -208,9 +205,7 @@ class Reanchoring:
             search.widen_if_stuck(pred.x(), pred.y())
         x, y, yaw = planar_of(self.track.raw[k])
         scale = self.alignment.scale
-        if search.active.k0 is None:
-            search.active.k0 = k
-        loc = search.active.add(x * scale, y * scale, yaw)  # (not search.feed: a converged search goes on)
+        loc = search.active.add(x * scale, y * scale, yaw, k)  # (not search.feed: a converged search goes on)
         if loc is not None and math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
             search.active = None  # the map confirms GPS: a search that found the estimate ends
             self._beside_gps = False

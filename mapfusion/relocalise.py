@@ -483,12 +483,14 @@ class Relocaliser:
         self._held_m = 0.0  # driving over which the posterior has stayed converged on one moving cluster
         self._held: Located | None = None
         self.answer: Located | None = None  # the converged answer at the last step (None: not converged)
-        self.k0: int | None = None  # the engine's frame of the first pose fed (set by the engine)
+        self.k0: int | None = None  # the caller's frame number of the first pose, when it gives one
 
-    def add(self, x: float, y: float, yaw: float) -> Located | None:
-        """One odometry pose; the converged answer, or None (not yet, or nothing in the region)."""
+    def add(self, x: float, y: float, yaw: float, frame: int | None = None) -> Located | None:
+        """One odometry pose (``frame``: the caller's number for it, kept for the first); the converged answer,
+        or None (not yet, or nothing in the region)."""
         if self._anchor is None:
             self._anchor = self._last = (x, y)
+            self.k0 = frame
             self.way_points_in_region = self.particles.start(self.region, yaw, scale_range=self.scale_range)
             log.info("re-localising in a %.0f m region around (%.0f, %.0f): %d particles on %d way-points",
                      self.region.radius_m, self.region.x_m, self.region.y_m, len(self.particles),
@@ -546,11 +548,12 @@ class Search:
         return Region(x_m, y_m, min(cfg.reloc_radius_m + cfg.reloc_radius_per_m * unexplained_m,
                                     cfg.reloc_max_radius_m))
 
-    def feed(self, x_m: float, y_m: float, yaw_rad: float) -> Located | None:
-        """One odometry pose (metres, the odometry's frame); the answer once converged (the search then ends)."""
+    def feed(self, x_m: float, y_m: float, yaw_rad: float, frame: int | None = None) -> Located | None:
+        """One odometry pose (metres, the odometry's frame; ``frame``: the caller's number for it); the answer
+        once converged (the search then ends)."""
         if self.active is None:
             return None
-        loc = self.active.add(x_m, y_m, yaw_rad)
+        loc = self.active.add(x_m, y_m, yaw_rad, frame)
         if loc is not None:
             self.active = None
             log.info("re-localised on the road network after %.0f m: (%.1f, %.1f), %.0f%% of the posterior "

@@ -364,6 +364,11 @@ def check_ranges(ranges: dict[str, tuple[float, float]]) -> None:
 HEARTBEAT_S, GRACE_S = 30, 120
 
 
+#: How often :func:`open_storage` tries, and the errors of another process creating the same schema.
+OPEN_ATTEMPTS = 10
+_SCHEMA_RACE = ("already exists", "database is locked", "UNIQUE constraint failed", "duplicate key")
+
+
 def open_storage(url: str, option: str = "--storage"):
     """The Optuna storage at ``url``, opened now (driver loaded, database reachable) so that a bad
     URL is refused before any simulation; an :class:`InputError` naming ``option`` otherwise."""
@@ -395,11 +400,6 @@ def open_storage(url: str, option: str = "--storage"):
         except (sqlalchemy.exc.SQLAlchemyError, ImportError, ValueError) as exc:
             raise InputError(f"{option} {url}: cannot open the storage ({_first_line(exc)})") from None
     raise AssertionError("unreachable")  # pragma: no cover - the last attempt returns or raises
-
-
-#: How often :func:`open_storage` tries, and the errors of another process creating the same schema.
-OPEN_ATTEMPTS = 10
-_SCHEMA_RACE = ("already exists", "database is locked", "UNIQUE constraint failed", "duplicate key")
 
 
 def _first_line(exc: BaseException) -> str:
