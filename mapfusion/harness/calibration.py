@@ -95,9 +95,12 @@ class CalibrationRun:
 
 
 def calibration_runs(maps=("helsinki", "kotka"), seeds=(1, 2, 3, 4), cases=CASES, min_route_m: float = 2000.0,
-                     duration_s: float = 900.0, use_engine: bool = True, workers: int = 2) -> list[CalibrationRun]:
+                     duration_s: float = 900.0, use_engine: bool = True, workers: int = 2,
+                     odometry: dict[str, float] | None = None) -> list[CalibrationRun]:
     """Drive every map × seed once per GPS-denied zone setting, then synthesise every case on it.
     The baseline is the engine with map priors off (``use_engine``), else the similarity stand-in.
+    ``odometry``: fields of ``sim.sensors.OdometryParams`` that replace every case's preset values, as a
+    scenario's ``[odometry]`` table does (to measure what a sensor model would give).
     Each map × seed is one task of ``workers`` processes (issue 21: the fixture ran them one by one);
     the runs come back in map, seed, case order whatever finished first. A failed task raises."""
     from mapfusion.maps import resolve_map
@@ -111,7 +114,8 @@ def calibration_runs(maps=("helsinki", "kotka"), seeds=(1, 2, 3, 4), cases=CASES
     for name in maps:
         path = str(resolve_map(name))
         RoadMap.from_osm(path), build_network(path)  # built (and cached) here, not by tasks at the same time
-        tasks += [(name, path, seed, tuple(cases), min_route_m, duration_s, use_engine) for seed in seeds]
+        tasks += [(name, path, seed, tuple(cases), min_route_m, duration_s, use_engine,
+                   tuple(sorted((odometry or {}).items()))) for seed in seeds]
     done: dict[tuple, list[CalibrationRun]] = {}
     failures: list[str] = []
     run_tasks(tasks, _calibration_task, workers=workers, on_rows=lambda task, rows: done.__setitem__(task, rows),
@@ -130,7 +134,7 @@ def _calibration_task(task) -> list[CalibrationRun]:
     from sim.scenario import OdometryConfig, OdometryKind, WeatherConfig, WeatherKind, scenario_from_dict
     from sim.sensors import Truth, synthesise, under_bridges
 
-    name, path, seed, cases, min_route_m, duration_s, use_engine = task
+    name, path, seed, cases, min_route_m, duration_s, use_engine, overrides = task
     road, net = RoadMap.from_osm(path), build_network(path)
     runs, drives = [], {}
     for weather, kind, zone in cases:
@@ -143,7 +147,8 @@ def _calibration_task(task) -> list[CalibrationRun]:
             bridges = under_bridges(road, d.ego.x_m, d.ego.y_m, d.ego.osm_way, sc.gps.bridge_lane_width_m)
             drives[zone] = (sc, d, bridges)
         sc, d, bridges = drives[zone]
-        sc = sc.replace(weather=WeatherConfig(kind=WeatherKind(weather)), odometry=OdometryConfig(kind=OdometryKind(kind)))
+        odometry = OdometryConfig(kind=OdometryKind(kind), overrides=overrides)
+        sc = sc.replace(weather=WeatherConfig(kind=WeatherKind(weather)), odometry=odometry)
         truth = Truth.from_track(d.ego, bridges, sc.gps)
         sensors = synthesise(sc, truth)
         res = odometry_only_ate(truth, sensors.odometry, sensors.gps, sc.gps.init_window_s,
@@ -152,10 +157,10 @@ def _calibration_task(task) -> list[CalibrationRun]:
     return runs
 
 
-def summarise(runs: list[CalibrationRun]) -> list[dict]:
+def summarise(runs: list[CalibrationRun], cases=CASES) -> list[dict]:
     """One row per case: runs, mean and median ATE of the runs that stayed localised, de-localised count."""
     rows = []
-    for weather, kind, zone in CASES:
+    for weather, kind, zone in cases:
         sel = [r for r in runs if (r.weather, r.kind, r.tunnel) == (weather, kind, zone is not None)]
         if not sel:
             continue
@@ -169,13 +174,60 @@ def summarise(runs: list[CalibrationRun]) -> list[dict]:
     return rows
 
 
-def main() -> None:
-    """Print the calibration table (python -m mapfusion.harness.calibration)."""
-    for row in summarise(calibration_runs()):
+def _parse_case(text: str) -> tuple[str, str, tuple[float, float] | None]:
+    """WEATHER:KIND or WEATHER:KIND:tunnel, one of :data:`CASES`."""
+    parts = text.split(":")
+    for weather, kind, zone in CASES:
+        if parts[:2] == [weather, kind] and (len(parts) == 3 and parts[2] == "tunnel") == (zone is not None) \
+                and len(parts) <= 3:
+            return weather, kind, zone
+    known = ", ".join(f"{w}:{k}{':tunnel' if z else ''}" for w, k, z in CASES)
+    raise ValueError(f"unknown case {text!r} (known: {known})")
+
+
+def _parse_override(text: str) -> tuple[str, float]:
+    """KEY=VALUE of an ``OdometryParams`` field."""
+    import dataclasses
+
+    from sim.sensors import OdometryParams
+
+    key, sep, value = text.partition("=")
+    fields = {f.name for f in dataclasses.fields(OdometryParams)}
+    if not sep or key not in fields:
+        raise ValueError(f"--odometry takes KEY=VALUE with KEY a field of OdometryParams, got {text!r}")
+    return key, float(value)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print the calibration table (``python -m mapfusion.harness.calibration [--seeds 1,2,3,4] [--maps
+    helsinki,kotka] [--case clear:vo ...] [--odometry KEY=VALUE ...]``). Exit code 2 on bad arguments."""
+    import argparse
+    import sys
+
+    ap = argparse.ArgumentParser(prog="python -m mapfusion.harness.calibration",
+                                 description="GPS-initialised odometry alone against the paper's ranges.")
+    ap.add_argument("--seeds", default="1,2,3,4", help="comma-separated seeds (default: the test's 1,2,3,4)")
+    ap.add_argument("--maps", default="helsinki,kotka", help="comma-separated bundled maps")
+    ap.add_argument("--case", action="append", default=[], help="WEATHER:KIND[:tunnel], repeatable (default: all)")
+    ap.add_argument("--odometry", action="append", default=[],
+                    help="KEY=VALUE replacing an OdometryParams field in every case (a sensor model to measure)")
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args(argv)
+    try:
+        seeds = tuple(int(s) for s in args.seeds.split(","))
+        cases = tuple(_parse_case(c) for c in args.case) or CASES
+        overrides = dict(_parse_override(o) for o in args.odometry)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    runs = calibration_runs(maps=tuple(args.maps.split(",")), seeds=seeds, cases=cases, workers=args.workers,
+                            odometry=overrides)
+    for row in summarise(runs, cases):
         tunnel = " + tunnel" if row["tunnel"] else ""
-        print(f"{row['weather']:>10} {row['kind']:>3}{tunnel:9}  runs {row['runs']}  median {row['median_ate_m']:6.2f} m  "
-              f"mean (localised) {row['mean_ate_m']:6.2f} m  de-localised {row['delocalized']}  ATEs {row['ates_m']}")
+        print(f"{row['weather']:>10} {row['kind']:>3}{tunnel:9}  runs {row['runs']}  "
+              f"median {row['median_ate_m']:6.2f} m  mean (localised) {row['mean_ate_m']:6.2f} m  de-localised {row['delocalized']}  ATEs {row['ates_m']}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())
