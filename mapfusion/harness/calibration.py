@@ -225,7 +225,8 @@ def main(argv: list[str] | None = None) -> int:
     for row in summarise(runs, cases):
         tunnel = " + tunnel" if row["tunnel"] else ""
         print(f"{row['weather']:>10} {row['kind']:>3}{tunnel:9}  runs {row['runs']}  "
-              f"median {row['median_ate_m']:6.2f} m  mean (localised) {row['mean_ate_m']:6.2f} m  de-localised {row['delocalized']}  ATEs {row['ates_m']}")
+              f"median {row['median_ate_m']:6.2f} m  mean (localised) {row['mean_ate_m']:6.2f} m  "
+              f"de-localised {row['delocalized']}  ATEs {row['ates_m']}")
     return 0
 
 
