@@ -671,6 +671,22 @@ class FusionConfig:
                                  "only).", unit="m", min=0.0, max=100000.0,
                                  source="issue 17: kidnapped seeds 1-10 / held-out 11-20, 0 / 1000 / 2000 m: "
                                  "ATE 60.4 / 58.7 / 58.7 and 82.6 / 80.5 / 80.4 m")
+    reloc_watch_m: float = param(0.0, "A search that re-anchored the estimate goes on over this much more driving, "
+                                 "its posterior kept whole: should its mass gather at another place (a look-alike "
+                                 "path that the road since has ruled out) more than reloc_watch_apart_m from the "
+                                 "estimate, it re-anchors there (0: a search ends when it converges).",
+                                 unit="m", min=0.0, max=100000.0,
+                                 source="issue 17: a wrong convergence stayed until the next lost event")
+    reloc_watch_apart_m: float = param(50.0, "How far from the estimate the watched posterior's answer must be to "
+                                       "re-anchor again (nearer: the same place, the tracking's own along-road "
+                                       "error).", unit="m", min=0.0, max=100000.0,
+                                       source="issue 17: twice reloc_converge_radius_m")
+    reloc_rival_mass: float = param(0.0, "No map re-anchoring while the search's posterior still holds at least this "
+                                    "share of its mass within 2 × reloc_converge_radius_m of the estimate: it has not "
+                                    "ruled the estimate's place out, only preferred another (a look-alike path) "
+                                    "(0: no such test).", min=0.0, max=1.0,
+                                    source="issue 17: as road_fix_rival_mass; kidnapped runs whose search moved an "
+                                    "estimate 2-17 m from the truth to a place 90-460 m off")
     reloc_give_up_m: float = param(1500.0, "A search not converged after this much driving starts again around the "
                                    "estimate with twice the radius.", unit="m", min=10.0, max=1000000.0,
                                    source="issue 17")

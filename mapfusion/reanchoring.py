@@ -20,7 +20,7 @@ from .geometry import cumulative_length
 from .gps_gate import GpsGate
 from .initialisation import Initialiser
 from .metrics import umeyama
-from .relocalise import Located, Region, RoadParticles, Search, enclosing_disc
+from .relocalise import Located, Region, Relocaliser, RoadParticles, Search, enclosing_disc
 from .roadmap import RoadMap
 from .smoother import Smoother
 from .track import Alignment, JumpGuard, Track, level, planar_of, spread_back
@@ -59,6 +59,7 @@ class Reanchoring:
         self.relocalised_at = []  # (time, distance searched) of each map re-localisation
         self._checked_fix_t = math.nan  # the last fix whose silence started a search
         self._map_anchor: tuple[int, Region] | None = None  # the last map re-anchoring: its frame, its search's region
+        self._watch_last: Located | None = None  # the watched search's last answer (reloc_watch_m)
         self._beside_gps = False  # the running search began while GPS came (it has not acted yet)
 
     def _restart_from(self, k: int, pose: gtsam.Pose3, noise, sigma_m: float) -> None:
@@ -124,6 +125,7 @@ class Reanchoring:
         assoc, search = self._association, self._search
         fixes = self.initialiser.fixes
         if fixes and self.track.t[k] - fixes[-1][0] < self.cfg.reloc_after_gps_s:
+            search.watching = None  # (GPS is back: it places the estimate)
             self._search_beside_gps(k, pred)  # GPS is here: it places the estimate, not a search of the map
             return
         if self._beside_gps:  # GPS fell silent with a search running beside it: that search is the silence's
@@ -143,14 +145,76 @@ class Reanchoring:
             search.begin(Region(pred.x(), pred.y(), self.cfg.reloc_radius_m))
         search.widen_if_stuck(pred.x(), pred.y())
         if search.active is None:
+            if search.watching is not None:
+                self._watch_reanchoring(k, pred)
             return
-        x, y, yaw = planar_of(self.track.raw[k])
-        assert self.alignment is not None
-        scale = self.alignment.scale
         active = search.active
-        loc = search.feed(x * scale, y * scale, yaw, k)
-        if loc is None or math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
+        loc = search.feed(*self._search_pose(k, active), k)
+        if loc is None or math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m \
+                or self._rival_at_estimate(k, pred, loc, active):
             return
+        self._map_reanchor(k, pred, loc, active)
+        search.watch(active)
+        self._watch_last = loc
+
+    def _search_pose(self, k: int, search: Relocaliser) -> tuple[float, float, float]:
+        """Frame k's planar odometry pose for ``search`` (x and y in metres, yaw), at the scale the search was first
+        fed with: the engine's scale moves while a search runs (GPS refits beside GPS, road fixes while it is
+        watched), and a new scale times positions kilometres from the odometry's origin would jump its steps."""
+        assert self.alignment is not None
+        if search.feed_scale is None:
+            search.feed_scale = self.alignment.scale
+        x, y, yaw = planar_of(self.track.raw[k])
+        return x * search.feed_scale, y * search.feed_scale, yaw
+
+    def _watch_reanchoring(self, k: int, pred: gtsam.Pose3) -> None:
+        """The search that re-anchored the estimate goes on (``reloc_watch_m``). If its posterior's mass moves to
+        another place (its answer jumps, beyond where the vehicle drove, by more than ``reloc_watch_apart_m``)
+        farther than that from the estimate, the path since has ruled the first answer out, and the estimate is
+        re-anchored again, there. If instead its one cluster drifts away from the estimate (a turn its particles
+        could not follow: they do not turn back), the watched posterior no longer means anything: watching ends."""
+        search = self._search
+        watched = search.watching
+        assert watched is not None
+        loc = search.watched(*self._search_pose(k, watched), k)
+        if loc is None:
+            return
+        last, self._watch_last = self._watch_last, loc
+        apart = self.cfg.reloc_watch_apart_m
+        off = math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y())
+        if off <= apart:
+            return
+        jumped = last is None or \
+            math.hypot(loc.x_m - last.x_m, loc.y_m - last.y_m) - (loc.driven_m - last.driven_m) > apart
+        if not jumped:
+            log.info("t=%.1f s: the watched search's cluster drifted %.0f m from the estimate: watching ends",
+                     self.track.t[k], off)
+            search.watching = None
+            return
+        if self._rival_at_estimate(k, pred, loc, watched):
+            return
+        log.info("t=%.1f s: the search that re-anchored the estimate now holds %.0f%% of its posterior %.0f m away",
+                 self.track.t[k], 100 * loc.mass, off)
+        self._map_reanchor(k, pred, loc, watched)
+        search.watch(watched)
+
+    def _rival_at_estimate(self, k: int, pred: gtsam.Pose3, loc: Located, search: Relocaliser) -> bool:
+        """True (and logged) when ``search``, whose answer ``loc`` is away from the estimate, still holds at least
+        ``reloc_rival_mass`` of its posterior within 2 × ``reloc_converge_radius_m`` of the estimate: it has not
+        ruled the estimate's place out, only preferred another, and a good estimate is not moved on that."""
+        cfg = self.cfg
+        if cfg.reloc_rival_mass <= 0:
+            return False
+        mass = search.particles.mass_within(pred.x(), pred.y(), 2.0 * cfg.reloc_converge_radius_m)
+        if mass < cfg.reloc_rival_mass:
+            return False
+        log.info("t=%.1f s: the search prefers a place %.0f m away but still holds %.0f%% of its posterior at the "
+                 "estimate: no re-anchoring", self.track.t[k], math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()),
+                 100 * mass)
+        return True
+
+    def _map_reanchor(self, k: int, pred: gtsam.Pose3, loc: Located, active: Relocaliser) -> None:
+        """Re-anchor the smoother at frame k on a search's answer (counted, logged, the searched path mended)."""
         self._map_anchor = (k, active.region)
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
         sigma_m = max(loc.spread_m, 2.0)
@@ -203,9 +267,7 @@ class Reanchoring:
         assert search.active is not None
         if search.active.answer is None:  # (a converged search follows the vehicle however far it drives)
             search.widen_if_stuck(pred.x(), pred.y())
-        x, y, yaw = planar_of(self.track.raw[k])
-        scale = self.alignment.scale
-        loc = search.active.add(x * scale, y * scale, yaw, k)  # (not search.feed: a converged search goes on)
+        loc = search.active.add(*self._search_pose(k, search.active), k)  # (not feed: a converged search goes on)
         if loc is not None and math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
             search.active = None  # the map confirms GPS: a search that found the estimate ends
             self._beside_gps = False

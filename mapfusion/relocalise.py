@@ -325,6 +325,14 @@ class RoadParticles:
         key = key * 2048 + np.floor(self.log_scale[idx] / (0.01 * b)).astype(np.int64)
         return int(np.unique(key).size)
 
+    def mass_within(self, x_m: float, y_m: float, radius_m: float) -> float:
+        """The posterior mass within ``radius_m`` of (x, y) (0 with no particles)."""
+        if len(self) == 0:
+            return 0.0
+        xy = self.positions()
+        near = np.hypot(xy[:, 0] - x_m, xy[:, 1] - y_m) <= radius_m
+        return float(np.exp(self.logw[near]).sum())
+
     def located(self, odometry_yaw_rad: float) -> Located | None:
         """The main cluster's pose when the posterior has converged (see the module docstring), else None;
         its heading is the odometry's current heading turned by the cluster's mean offset."""
@@ -484,6 +492,7 @@ class Relocaliser:
         self._held: Located | None = None
         self.answer: Located | None = None  # the converged answer at the last step (None: not converged)
         self.k0: int | None = None  # the caller's frame number of the first pose, when it gives one
+        self.feed_scale: float | None = None  # the caller's odometry scale for its poses, kept for the search
 
     def add(self, x: float, y: float, yaw: float, frame: int | None = None) -> Located | None:
         """One odometry pose (``frame``: the caller's number for it, kept for the first); the converged answer,
@@ -527,12 +536,34 @@ class Search:
         self.road, self.cfg = road, cfg
         self.active: Relocaliser | None = None
         self.searches = 0
+        self.watching: Relocaliser | None = None  # a search that re-anchored, still fed (reloc_watch_m)
+        self._watch_until_m = 0.0
 
     def begin(self, region: Region, scale_range: tuple[float, float] = (1.0, 1.0)) -> None:
-        """Start a search in ``region`` (a new one replaces any running); its particles' scales spread over
-        ``scale_range`` (map metres per odometry unit)."""
+        """Start a search in ``region`` (a new one replaces any running, and ends any watched); its particles'
+        scales spread over ``scale_range`` (map metres per odometry unit)."""
         self.active = Relocaliser(self.road, self.cfg, region, self.cfg.reloc_seed + self.searches, scale_range)
+        self.watching = None
         self.searches += 1
+
+    def watch(self, search: Relocaliser) -> None:
+        """Keep feeding ``search``, which has just re-anchored the estimate, over ``reloc_watch_m`` more driving
+        (nothing when that is 0): its posterior is kept whole, so that a look-alike path it converged on can
+        still lose its mass to the right place (see :meth:`watched`)."""
+        if self.cfg.reloc_watch_m > 0:
+            self.watching = search
+            self._watch_until_m = search.particles.driven_m + self.cfg.reloc_watch_m
+
+    def watched(self, x_m: float, y_m: float, yaw_rad: float, frame: int | None = None) -> Located | None:
+        """One odometry pose (as :meth:`feed`) for the watched search; its converged answer, or None. Watching
+        ends after ``reloc_watch_m``."""
+        w = self.watching
+        if w is None:
+            return None
+        loc = w.add(x_m, y_m, yaw_rad, frame)
+        if w.particles.driven_m >= self._watch_until_m:
+            self.watching = None
+        return loc
 
     def widen_if_stuck(self, x_m: float, y_m: float) -> None:
         """A search that has not converged over ``reloc_give_up_m`` starts again around (x, y) with twice

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from mapfusion import FusionConfig, RoadMap
 from mapfusion.config import OutageStep
-from mapfusion.relocalise import Region, Relocaliser, RoadParticles
+from mapfusion.relocalise import Region, Relocaliser, RoadParticles, Search
 from mapfusion.roadmap import can_drive
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
@@ -56,6 +56,23 @@ def test_particles_stay_on_their_roads_and_the_posterior_sums_to_one(road, seed,
         for i in range(0, len(p), 50):  # each lies on its own edge's polyline (way-points ~1 m apart)
             pts = road.xy_m[road.edge_start[p.edge[i]]:road.edge_end[p.edge[i]]]
             assert np.min(np.hypot(*(pts - xy[i]).T)) <= road.config.spacing_m + 1e-6
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), steps=st.integers(0, 10), r1=st.floats(0.0, 500.0), r2=st.floats(0.0, 500.0),
+       dx=st.floats(-400.0, 400.0), dy=st.floats(-400.0, 400.0))
+def test_the_mass_within_a_disc_grows_with_it_from_none_to_all(road, seed, steps, r1, r2, dx, dy):
+    p = RoadParticles(road, CFG, seed)
+    rng = np.random.default_rng(seed)
+    x0, y0 = (float(v) for v in road.xy_m[int(rng.integers(len(road)))])
+    assert p.mass_within(x0, y0, 100.0) == 0.0  # (no particles yet)
+    p.start(Region(x0, y0, 300.0), 0.0, n=500)
+    for _ in range(steps):
+        p.step(10.0, np.array([10.0, 0.0]))
+    cx, cy = x0 + dx, y0 + dy
+    lo, hi = sorted((r1, r2))
+    assert 0.0 <= p.mass_within(cx, cy, lo) <= p.mass_within(cx, cy, hi) + 1e-12
+    assert math.isclose(p.mass_within(cx, cy, 1e7), 1.0, rel_tol=1e-9)
 
 
 def _relocalise(road, seed, length_m, offset_m=300.0, radius_m=1000.0):
@@ -475,3 +492,69 @@ def test_a_search_soon_after_a_map_re_anchoring_also_covers_that_search_s_region
     assert eng._doubting(k, lost) == lost
     eng.cfg = dataclasses.replace(cfg, reloc_doubt_m=0.5 * driven)
     assert eng._doubting(k, lost) == lost
+
+
+def test_a_watched_search_ends_after_its_distance_and_when_another_begins(road):
+    x, y, yaw, _ = graph_route(road, 1, 600.0)
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, 1, noise_m=0.02)
+    off = Search(road, dataclasses.replace(CFG, reloc_watch_m=0.0))
+    r = Relocaliser(road, CFG, Region(x[0], y[0], 300.0))
+    off.watch(r)
+    assert off.watching is None  # reloc_watch_m 0: a search ends when it converges
+    search = Search(road, dataclasses.replace(CFG, reloc_watch_m=200.0))
+    search.watch(r)
+    k = 0
+    while search.watching is not None:
+        search.watched(ox[k], oy[k], oyaw[k], k)
+        k += 1
+    assert 195.0 <= r.particles.driven_m <= 215.0  # (whole filter steps of reloc_step_m)
+    search.watch(r)
+    search.begin(Region(x[k], y[k], 300.0))
+    assert search.watching is None and search.watched(ox[k + 1], oy[k + 1], oyaw[k + 1]) is None
+
+
+def test_a_watched_search_takes_a_wrong_re_anchoring_back_to_where_its_posterior_gathers(road):
+    """A search that has tracked the truth re-anchors the estimate 200 m off it (as a look-alike path would):
+    watched (reloc_watch_m), its posterior, which holds the truth, re-anchors it back at its next filter steps;
+    not watched, the estimate stays off to the end of the drive (nothing calls it lost: it is on roads)."""
+    from mapfusion.track import planar_of
+
+    seed = 4
+    x, y, yaw, _ = graph_route(road, seed, 1700.0)
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
+    k_search, k_wrong = 500, 900
+
+    def run(watch_m: float):
+        from mapfusion import MapFusion
+
+        cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_watch_m=watch_m)
+        eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
+        r = Relocaliser(road, cfg, Region(x[k_search], y[k_search], 300.0), seed=1)
+        for k in range(len(x)):
+            if k % 10 == 0 and k < 400:
+                lat, lon = road.projection.to_geo(x[k], y[k])
+                eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
+            eng.add_odometry(0.1 * k, odometry_step(ox, oy, oyaw, k))
+            if k_search <= k <= k_wrong:
+                px, py, pyaw = planar_of(eng.track.raw[k])
+                s = eng.alignment.scale
+                loc = r.add(px * s, py * s, pyaw, k)
+            if k == k_wrong:
+                assert loc is not None and math.hypot(loc.x_m - x[k], loc.y_m - y[k]) < 15.0
+                wrong = dataclasses.replace(loc, x_m=loc.x_m + 200.0)
+                pred = eng.track.online[k]
+                eng._map_reanchor(k, pred, wrong, r)
+                eng._search.watch(r)
+                p = eng.track.online[k]
+                assert math.hypot(p.x() - x[k] - 200.0, p.y() - y[k]) < 10.0  # (re-anchored where it was told)
+        eng.finish()
+        p = eng.estimate()
+        return eng, math.hypot(p.x() - x[-1], p.y() - y[-1])
+
+    unwatched, err_unwatched = run(0.0)
+    watched, err_watched = run(500.0)
+    assert err_unwatched > 100.0, err_unwatched
+    assert watched.counters.map_relocalisations >= 2 and watched.counters.lost_events == \
+        unwatched.counters.lost_events, watched.relocalised_at  # (the watch, not a search begun when lost)
+    assert watched.relocalised_at[1][1] - watched.relocalised_at[0][1] < 50.0  # metres of the search's driving
+    assert err_watched < 15.0, (err_watched, watched.relocalised_at)
