@@ -34,7 +34,7 @@ from .initialisation import Initialiser, solve_initial_batch
 from .roadmap import RoadMap
 from .smoother import Smoother
 from .stream import OnFinal, Release
-from .reanchoring import Reanchoring
+from .searching import MapSearching
 from .track import Alignment, JumpGuard, planar_of, track_for
 from .tracking import RoadFixes, RoadFixing
 
@@ -66,7 +66,7 @@ def _finite_pose(p: gtsam.Pose3) -> bool:
     return bool(np.all(np.isfinite(p.matrix())))
 
 
-class MapFusion(Reanchoring, RoadFixing):
+class MapFusion(MapSearching, RoadFixing):
     """The engine: feed it odometry and GPS in time order, read estimates back.
 
     ``add_odometry(t, relative_pose)``: the motion since the previous frame, body frame (x

@@ -16,14 +16,13 @@ from .association import MapAssociation
 from .config import FusionConfig, OutageStep, StateModel
 from .counters import Counters
 from .errors import EngineError
-from .geometry import cumulative_length
 from .gps_gate import GpsGate
 from .initialisation import Initialiser
 from .metrics import umeyama
-from .relocalise import Located, Region, Relocaliser, RoadParticles, Search, enclosing_disc
+from .relocalise import Located, Region, RoadParticles, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
-from .track import Alignment, JumpGuard, Track, level, planar_of, spread_back
+from .track import Alignment, JumpGuard, Track, level, spread_back
 from .tracking import RoadFixes
 
 log = logging.getLogger(__name__)
@@ -116,181 +115,6 @@ class Reanchoring:
                     anchor=len(self.track) - 1)
         self.counters.map_relocalisations += 1
         self.relocalised_at.append((self.track.t[-1], loc.driven_m))
-
-    def _search_when_lost(self, k: int, pred: gtsam.Pose3) -> None:
-        """From the moment the estimate is lost, a search on the road network; once it converges away from
-        the estimate, the smoother is re-anchored there (issue 17; near the estimate it only confirms it)."""
-        if not self.cfg.use_map:  # (the baseline: no map, so no search on it)
-            return
-        assoc, search = self._association, self._search
-        fixes = self.initialiser.fixes
-        if fixes and self.track.t[k] - fixes[-1][0] < self.cfg.reloc_after_gps_s:
-            search.watching = None  # (GPS is back: it places the estimate)
-            self._search_beside_gps(k, pred)  # GPS is here: it places the estimate, not a search of the map
-            return
-        if self._beside_gps:  # GPS fell silent with a search running beside it: that search is the silence's
-            self._beside_gps = False
-            self._gps_went_silent(k)
-        gap_s = self.track.t[k] - self.track.t[k - 1]
-        if gap_s > self.cfg.reloc_gap_s:  # the odometry lost track: where it resumed is not to be trusted
-            prev = self.track.online[k - 1] or pred
-            search.begin(Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + gap_s * self.cfg.reloc_gap_speed_mps))
-            return
-        if assoc.became_lost:
-            assoc.became_lost = False
-            if search.active is None:  # (a running search goes on: its particles know more than a new one's)
-                x, y = assoc.explained_xy or (pred.x(), pred.y())
-                search.begin(self._doubting(k, search.lost_region(x, y, assoc.unexplained_m)))
-        elif search.active is None and self._gps_went_silent(k):  # a second opinion on where GPS left it
-            search.begin(Region(pred.x(), pred.y(), self.cfg.reloc_radius_m))
-        search.widen_if_stuck(pred.x(), pred.y())
-        if search.active is None:
-            if search.watching is not None:
-                self._watch_reanchoring(k, pred)
-            return
-        active = search.active
-        loc = search.feed(*self._search_pose(k, active), k)
-        if loc is None or math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m \
-                or self._rival_at_estimate(k, pred, loc, active):
-            return
-        self._map_reanchor(k, pred, loc, active)
-        search.watch(active)
-        self._watch_last = loc
-
-    def _search_pose(self, k: int, search: Relocaliser) -> tuple[float, float, float]:
-        """Frame k's planar odometry pose for ``search`` (x and y in metres, yaw), at the scale the search was first
-        fed with: the engine's scale moves while a search runs (GPS refits beside GPS, road fixes while it is
-        watched), and a new scale times positions kilometres from the odometry's origin would jump its steps."""
-        assert self.alignment is not None
-        if search.feed_scale is None:
-            search.feed_scale = self.alignment.scale
-        x, y, yaw = planar_of(self.track.raw[k])
-        return x * search.feed_scale, y * search.feed_scale, yaw
-
-    def _watch_reanchoring(self, k: int, pred: gtsam.Pose3) -> None:
-        """The search that re-anchored the estimate goes on (``reloc_watch_m``). If its posterior's mass moves to
-        another place (its answer jumps, beyond where the vehicle drove, by more than ``reloc_watch_apart_m``)
-        farther than that from the estimate, the path since has ruled the first answer out, and the estimate is
-        re-anchored again, there. If instead its one cluster drifts away from the estimate (a turn its particles
-        could not follow: they do not turn back), the watched posterior no longer means anything: watching ends."""
-        search = self._search
-        watched = search.watching
-        assert watched is not None
-        loc = search.watched(*self._search_pose(k, watched), k)
-        if loc is None:
-            return
-        last, self._watch_last = self._watch_last, loc
-        apart = self.cfg.reloc_watch_apart_m
-        off = math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y())
-        if off <= apart:
-            return
-        jumped = last is None or \
-            math.hypot(loc.x_m - last.x_m, loc.y_m - last.y_m) - (loc.driven_m - last.driven_m) > apart
-        if not jumped:
-            log.info("t=%.1f s: the watched search's cluster drifted %.0f m from the estimate: watching ends",
-                     self.track.t[k], off)
-            search.watching = None
-            return
-        if self._rival_at_estimate(k, pred, loc, watched):
-            return
-        log.info("t=%.1f s: the search that re-anchored the estimate now holds %.0f%% of its posterior %.0f m away",
-                 self.track.t[k], 100 * loc.mass, off)
-        self._map_reanchor(k, pred, loc, watched)
-        search.watch(watched)
-
-    def _rival_at_estimate(self, k: int, pred: gtsam.Pose3, loc: Located, search: Relocaliser) -> bool:
-        """True (and logged) when ``search``, whose answer ``loc`` is away from the estimate, still holds at least
-        ``reloc_rival_mass`` of its posterior within 2 × ``reloc_converge_radius_m`` of the estimate: it has not
-        ruled the estimate's place out, only preferred another, and a good estimate is not moved on that."""
-        cfg = self.cfg
-        if cfg.reloc_rival_mass <= 0:
-            return False
-        mass = search.particles.mass_within(pred.x(), pred.y(), 2.0 * cfg.reloc_converge_radius_m)
-        if mass < cfg.reloc_rival_mass:
-            return False
-        log.info("t=%.1f s: the search prefers a place %.0f m away but still holds %.0f%% of its posterior at the "
-                 "estimate: no re-anchoring", self.track.t[k], math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()),
-                 100 * mass)
-        return True
-
-    def _map_reanchor(self, k: int, pred: gtsam.Pose3, loc: Located, active: Relocaliser) -> None:
-        """Re-anchor the smoother at frame k on a search's answer (counted, logged, the searched path mended)."""
-        self._map_anchor = (k, active.region)
-        pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
-        sigma_m = max(loc.spread_m, 2.0)
-        sigmas = factors.pose_sigmas(StateModel.planar, max(loc.yaw_spread_rad, math.radians(2.0)), sigma_m)
-        self._restart_from(k, pose, factors.diagonal(sigmas), sigma_m)
-        if self.cfg.reloc_mend_back:
-            self._mend_searched(active.k0 if active.k0 is not None else k, k, pred, pose)
-        self.counters.map_relocalisations += 1
-        self.relocalised_at.append((self.track.t[k], loc.driven_m))
-        log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
-                 math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
-        self._update()
-
-    def _mend_searched(self, k0: int, k1: int, was: gtsam.Pose3, now: gtsam.Pose3) -> None:
-        """A map re-anchoring moved frame k1 from ``was`` to ``now``; its search matched the odometry's path from
-        frame k0 on to the roads, so that path lies where the re-anchoring puts its end: the final estimates of
-        frames k0 … k1-1 are moved rigidly by the same correction (about z). The online estimates stay as they
-        were (causal)."""
-        sm, track = self._smoother, self.track
-        assert sm is not None
-        k0 = max(k0, track.first)
-        dyaw = math.remainder(now.rotation().yaw() - was.rotation().yaw(), 2.0 * math.pi)
-        c, s = math.cos(dyaw), math.sin(dyaw)
-        turn = gtsam.Rot3.Yaw(dyaw)
-        moved = 0
-        for j in range(k0, k1):
-            p = sm.smoothed.get(j)
-            if p is None:
-                continue
-            dx, dy = p.x() - was.x(), p.y() - was.y()
-            sm.smoothed[j] = gtsam.Pose3(turn.compose(p.rotation()),
-                                         gtsam.Point3(now.x() + c * dx - s * dy, now.y() + s * dx + c * dy, p.z()))
-            moved += 1
-        log.info("t=%.1f s: the map's correction moved the %d frames its search matched", track.t[k1], moved)
-
-    def _search_beside_gps(self, k: int, pred: gtsam.Pose3) -> None:
-        """While GPS comes: no search unless the estimate is lost (``reloc_under_gps``); then one runs, fed but
-        never acted on, so that when GPS falls silent its particles already know where the odometry's path fits
-        the roads (a fix window sharing one bias keeps the estimate off the roads long before GPS ends)."""
-        assoc, search = self._association, self._search
-        if not self.cfg.reloc_under_gps or self.alignment is None or not (assoc.lost or self._beside_gps):
-            search.active = None
-            self._beside_gps = False
-            return
-        if search.active is None or not self._beside_gps:
-            assoc.became_lost = False
-            x, y = assoc.explained_xy or (pred.x(), pred.y())
-            search.begin(search.lost_region(x, y, assoc.unexplained_m))
-            self._beside_gps = True
-        assert search.active is not None
-        if search.active.answer is None:  # (a converged search follows the vehicle however far it drives)
-            search.widen_if_stuck(pred.x(), pred.y())
-        loc = search.active.add(*self._search_pose(k, search.active), k)  # (not feed: a converged search goes on)
-        if loc is not None and math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
-            search.active = None  # the map confirms GPS: a search that found the estimate ends
-            self._beside_gps = False
-
-    def _doubting(self, k: int, region: Region) -> Region:
-        """The region of a search begun when the estimate is lost within ``reloc_doubt_m`` of driving after a map
-        re-anchoring: that re-anchoring may have been the wrong turn, so the region also covers the one the
-        re-anchoring's search ran in, grown by the distance driven since (the smallest disc holding both, at most
-        ``reloc_max_radius_m``)."""
-        cfg = self.cfg
-        if self._map_anchor is None or cfg.reloc_doubt_m <= 0 or self.alignment is None:
-            return region
-        k0, old = self._map_anchor
-        track = self.track
-        if k0 < track.first:
-            return region
-        pts = np.array([planar_of(track.raw[j])[:2] for j in range(k0, k + 1)])
-        driven = float(cumulative_length(pts)[-1]) * self.alignment.scale
-        if driven > cfg.reloc_doubt_m:
-            return region
-        grown = Region(old.x_m, old.y_m, old.radius_m + driven)
-        both = enclosing_disc(region, grown)
-        return Region(both.x_m, both.y_m, min(both.radius_m, cfg.reloc_max_radius_m))
 
     def _along_road(self, k: int, prev: gtsam.Pose3) -> gtsam.Pose3:
         """The step into frame k. After an odometry outage longer than ``reloc_gap_s`` with ``outage_step =
