@@ -558,3 +558,24 @@ def test_a_watched_search_takes_a_wrong_re_anchoring_back_to_where_its_posterior
         unwatched.counters.lost_events, watched.relocalised_at  # (the watch, not a search begun when lost)
     assert watched.relocalised_at[1][1] - watched.relocalised_at[0][1] < 50.0  # metres of the search's driving
     assert err_watched < 15.0, (err_watched, watched.relocalised_at)
+
+
+def test_a_search_that_still_holds_mass_at_the_estimate_does_not_move_it(road):
+    """reloc_rival_mass: a posterior with mass near the estimate has not ruled its place out (no re-anchoring);
+    one with none near it has; 0 turns the test off."""
+    import gtsam
+
+    from mapfusion import MapFusion
+    from mapfusion.relocalise import Located
+
+    x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
+    r = Relocaliser(road, CFG, Region(x0, y0, 60.0))
+    r.add(0.0, 0.0, 0.0)  # (spreads the particles over the region's roads)
+    answer = Located(x0 + 500.0, y0, 0.0, 0.0, 0, 1, 0.0, 0.9, 2.0, 0.01, 150.0)
+    for rival, at, expected in ((0.05, (x0, y0), True), (0.05, (x0 + 1000.0, y0), False), (0.0, (x0, y0), False)):
+        eng = MapFusion(road, dataclasses.replace(CFG, reloc_rival_mass=rival), odometry_rate_hz=10.0)
+        eng.add_odometry(0.0, np.eye(4))
+        pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(at[0], at[1], 0.0))
+        near = r.particles.mass_within(at[0], at[1], 2.0 * CFG.reloc_converge_radius_m)
+        assert (near >= 0.05) == (at == (x0, y0))  # (the setup: the region's roads lie around the estimate)
+        assert eng._rival_at_estimate(0, pred, answer, r) is expected
