@@ -31,6 +31,7 @@ odometry stream (planar poses in the odometry's frame) and is what the engine ho
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -553,6 +554,12 @@ class Search:
         if self.cfg.reloc_watch_m > 0:
             self.watching = search
             self._watch_until_m = search.particles.driven_m + self.cfg.reloc_watch_m
+            # a search's particles never turn back (where the search is, a turn back rarely happens); once they
+            # follow the vehicle for long, one that turns back would kill the right cluster: they may, as the road
+            # fixes' particles do
+            p = search.particles
+            if p.cfg.reloc_uturn_probability < self.cfg.road_fix_uturn_probability:
+                p.cfg = dataclasses.replace(p.cfg, reloc_uturn_probability=self.cfg.road_fix_uturn_probability)
 
     def watched(self, x_m: float, y_m: float, yaw_rad: float, frame: int | None = None) -> Located | None:
         """One odometry pose (as :meth:`feed`) for the watched search; its converged answer, or None. Watching
