@@ -493,7 +493,7 @@ class Relocaliser:
         self._held: Located | None = None
         self.answer: Located | None = None  # the converged answer at the last step (None: not converged)
         self.k0: int | None = None  # the caller's frame number of the first pose, when it gives one
-        self.feed_scale: float | None = None  # the caller's odometry scale for its poses, kept for the search
+        self.feed_scale: float | None = None  # the engine's odometry scale when it first fed this search
 
     def add(self, x: float, y: float, yaw: float, frame: int | None = None) -> Located | None:
         """One odometry pose (``frame``: the caller's number for it, kept for the first); the converged answer,
@@ -554,9 +554,8 @@ class Search:
         if self.cfg.reloc_watch_m > 0:
             self.watching = search
             self._watch_until_m = search.particles.driven_m + self.cfg.reloc_watch_m
-            # a search's particles never turn back (where the search is, a turn back rarely happens); once they
-            # follow the vehicle for long, one that turns back would kill the right cluster: they may, as the road
-            # fixes' particles do
+            # a search's particles never turn back (over its few hundred metres the vehicle rarely does); followed
+            # for longer, a vehicle that turns back kills the right cluster: watched, they may, as the road fixes' do
             p = search.particles
             if p.cfg.reloc_uturn_probability < self.cfg.road_fix_uturn_probability:
                 p.cfg = dataclasses.replace(p.cfg, reloc_uturn_probability=self.cfg.road_fix_uturn_probability)
