@@ -62,8 +62,6 @@ class MapSearching(Reanchoring):
                 or self._rival_at_estimate(k, pred, loc, active):
             return
         self._map_reanchor(k, pred, loc, active)
-        search.watch(active)
-        self._watch_last = loc
 
     def _search_pose(self, k: int, search: Relocaliser) -> tuple[float, float, float]:
         """Frame k's planar odometry pose for ``search`` (x and y in metres, yaw), at the scale the search was first
@@ -79,15 +77,16 @@ class MapSearching(Reanchoring):
         """The search that re-anchored the estimate goes on (``reloc_watch_m``). If its posterior's mass moves to
         another place (its answer jumps, beyond where the vehicle drove, by more than ``reloc_watch_apart_m``)
         farther than that from the estimate, the path since has ruled the first answer out, and the estimate is
-        re-anchored again, there. If instead its one cluster drifts away from the estimate (a turn its particles
-        could not follow: they do not turn back), the watched posterior no longer means anything: watching ends."""
+        re-anchored again, there. If instead its one cluster drifts away from the estimate (a manoeuvre its
+        particles could not follow), the watched posterior no longer means anything: watching ends."""
         search = self._search
         watched = search.watching
         assert watched is not None
         loc = search.watched(*self._search_pose(k, watched), k)
         if loc is None:
             return
-        last, self._watch_last = self._watch_last, loc
+        last = self._watch_last
+        self._watch_last = loc
         apart = self.cfg.reloc_watch_apart_m
         off = math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y())
         if off <= apart:
@@ -104,7 +103,6 @@ class MapSearching(Reanchoring):
         log.info("t=%.1f s: the search that re-anchored the estimate now holds %.0f%% of its posterior %.0f m away",
                  self.track.t[k], 100 * loc.mass, off)
         self._map_reanchor(k, pred, loc, watched)
-        search.watch(watched)
 
     def _rival_at_estimate(self, k: int, pred: gtsam.Pose3, loc: Located, search: Relocaliser) -> bool:
         """True (and logged) when ``search``, whose answer ``loc`` is away from the estimate, still holds at least
@@ -122,7 +120,8 @@ class MapSearching(Reanchoring):
         return True
 
     def _map_reanchor(self, k: int, pred: gtsam.Pose3, loc: Located, active: Relocaliser) -> None:
-        """Re-anchor the smoother at frame k on a search's answer (counted, logged, the searched path mended)."""
+        """Re-anchor the smoother at frame k on a search's answer (counted, logged, the searched path mended), and
+        watch that search on from there (``reloc_watch_m``)."""
         self._map_anchor = (k, active.region)
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
         sigma_m = max(loc.spread_m, 2.0)
@@ -135,6 +134,8 @@ class MapSearching(Reanchoring):
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
                  math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
         self._update()
+        self._search.watch(active)
+        self._watch_last = loc
 
     def _mend_searched(self, k0: int, k1: int, was: gtsam.Pose3, now: gtsam.Pose3) -> None:
         """A map re-anchoring moved frame k1 from ``was`` to ``now``; its search matched the odometry's path from

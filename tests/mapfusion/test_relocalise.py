@@ -543,8 +543,7 @@ def test_a_watched_search_takes_a_wrong_re_anchoring_back_to_where_its_posterior
                 assert loc is not None and math.hypot(loc.x_m - x[k], loc.y_m - y[k]) < 15.0
                 wrong = dataclasses.replace(loc, x_m=loc.x_m + 200.0)
                 pred = eng.track.online[k]
-                eng._map_reanchor(k, pred, wrong, r)
-                eng._search.watch(r)
+                eng._map_reanchor(k, pred, wrong, r)  # (which also watches r on)
                 p = eng.track.online[k]
                 assert math.hypot(p.x() - x[k] - 200.0, p.y() - y[k]) < 10.0  # (re-anchored where it was told)
         eng.finish()
