@@ -620,6 +620,12 @@ class FusionConfig:
     reloc_uturn_probability: float = param(0.0, "Probability that a particle on a two-way road turns back in one step "
                                            "(0: only at a dead end; the road fixes' particles take "
                                            "road_fix_uturn_probability).", min=0.0, max=1.0, source="issue 16")
+    reloc_uturn_at_vertex: float = param(0.1, "A search's particle reaching a vertex of a two-way road may also turn "
+                                         "back there: one more exit, of this prior weight against 1 for each legal "
+                                         "exit (0: only at a dead end). The road fixes' particles turn back by "
+                                         "road_fix_uturn_probability instead.", min=0.0, max=10.0,
+                                         source="issue 17: SUMO's vehicles turn back at junctions; kidnapped "
+                                         "runs re-anchored wrong 13 -> 7 of 120 (seeds 1-30)")
     reloc_offset_max_deg: float = param(180.0, "Largest heading innovation a particle's offset follows in one step "
                                         "(180: any; the road fixes' particles take road_fix_offset_max_deg).",
                                         unit="deg", min=0.0, max=180.0, source="issue 16")
@@ -653,6 +659,14 @@ class FusionConfig:
                                   "never moves the estimate while fixes come, and when GPS falls silent "
                                   "(reloc_after_gps_s) its particles go on as the search GPS's silence begins.",
                                   source="issue 17: a biased fix window is seen as lost long before GPS ends")
+    reloc_gps_replay_m: float = param(250.0, "With map_relocalisation: the search begun when GPS falls silent "
+                                      "(reloc_after_gps_s) starts this much driving back, around the estimate there, "
+                                      "and is fed the odometry since at once (from GPS's first fix at the earliest, "
+                                      "never across an odometry gap): a fix window that shared one bias is judged "
+                                      "on the path driven under it, not only on the path after it (0: the search "
+                                      "starts at the silence).", unit="m", min=0.0, max=100000.0,
+                                      source="issue 17: kidnapped runs within 500 m 75 -> 82 of 120 (seeds 1-30, "
+                                      "400 m: more wrong re-anchorings)")
     reloc_mend_back: bool = param(True, "A map re-anchoring also moves the final estimates of the frames its search "
                                   "matched to the roads (from the search's first frame on), rigidly by the "
                                   "re-anchoring's correction; the online estimates stay as they were.",

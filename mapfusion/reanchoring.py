@@ -4,6 +4,7 @@ GPS (issue 17) — a cold start in a region, or a search once the estimate is lo
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable
@@ -131,7 +132,9 @@ class Reanchoring:
         if m is None or m.is_join:
             return step
         if self._follower is None:
-            self._follower = RoadParticles(self.road, cfg, cfg.reloc_seed)
+            # (it follows the road the estimate is on: turning back at a vertex is a search's hypothesis, not a guess)
+            self._follower = RoadParticles(self.road, dataclasses.replace(cfg, reloc_uturn_at_vertex=0.0),
+                                           cfg.reloc_seed)
         tr = step.translation()
         length_m = math.sqrt(tr.dot(tr))
         # which way at a junction: the guess turns by the odometry's own turn over the gap, as a constant turn

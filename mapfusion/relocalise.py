@@ -204,8 +204,10 @@ class RoadParticles:
         in proportion to how near the exit leads it to ``target`` (its expected end position, (n, 2)):
         the odometry's own turn picks the exit, so the particles at the right place follow the right
         road; the importance weight (mean over the exits / the chosen exit's likelihood) keeps the
-        posterior that of a uniform choice. No U-turn, except at a dead end."""
+        posterior that of a uniform choice. No U-turn, except at a dead end or, with
+        ``reloc_uturn_at_vertex``, back along a two-way road as one more exit of that prior weight."""
         road, exits = self.road, self._exits
+        uturn = self.cfg.reloc_uturn_at_vertex
         self._xy = None  # (the particles move)
         along = self.along + self.direction * distance
         length = road.edge_length_m[self.edge]
@@ -217,7 +219,7 @@ class RoadParticles:
             rest = np.where(d > 0, along[over] - length[over], -along[over])  # beyond the vertex
             key = 2 * e + (d < 0)
             lo, count = exits.start[key], exits.start[key + 1] - exits.start[key]
-            width = max(int(count.max()), 1)
+            width = max(int(count.max()), 1) + (uturn > 0)
             j = np.arange(width)
             valid = j[None, :] < count[:, None]
             pick = np.where(valid, lo[:, None] + j[None, :], 0)
@@ -231,15 +233,20 @@ class RoadParticles:
             err2 = np.sum((end - target[over][:, None, :]) ** 2, axis=2)
             logl = np.where(valid | dead[:, None], -0.5 * err2 / (sigma_m * sigma_m), -np.inf)
             logl[dead, 1:] = -np.inf
+            prior = np.ones_like(logl)
+            if uturn > 0:  # turning back on a two-way road: one more exit (the column after the legal ones)
+                back = (j[None, :] == count[:, None]) & ~dead[:, None] & self._two_way[e][:, None]
+                logl, prior = np.where(back, -0.5 * err2 / (sigma_m * sigma_m), logl), np.where(back, uturn, 1.0)
             top = np.max(logl, axis=1, keepdims=True)
-            lik = np.exp(logl - top)
+            lik = np.exp(logl - top) * prior
             total = lik.sum(axis=1)
             choice = np.minimum((np.cumsum(lik, axis=1) < (self.rng.random(len(over)) * total)[:, None]).sum(axis=1),
                                 width - 1)
             rows = np.arange(len(over))
             if hop == 0:  # (later hops, on very short edges, are rare: their choice is left unweighted)
-                n_choices = np.maximum(count, 1)
-                self.logw[over] += np.log(total / n_choices) - np.log(lik[rows, choice])
+                # the weight: the chosen exit's prior share over its share of the proposal
+                held = np.where(np.isfinite(logl), prior, 0.0).sum(axis=1)
+                self.logw[over] += np.log(total / held) - np.log(lik[rows, choice]) + np.log(prior[rows, choice])
             ne, nd = ce[rows, choice], cd[rows, choice]
             self.edge[over], self.direction[over], length[over] = ne, nd, road.edge_length_m[ne]
             along[over] = np.where(nd > 0, rest, length[over] - rest)

@@ -13,7 +13,7 @@ import gtsam
 import numpy as np
 
 from . import factors
-from .config import StateModel
+from .config import OutageStep, StateModel
 from .geometry import cumulative_length
 from .reanchoring import Reanchoring
 from .relocalise import Located, Region, Relocaliser, enclosing_disc
@@ -41,8 +41,13 @@ class MapSearching(Reanchoring):
             self._gps_went_silent(k)
         gap_s = self.track.t[k] - self.track.t[k - 1]
         if gap_s > self.cfg.reloc_gap_s:  # the odometry lost track: where it resumed is not to be trusted
+            # the vehicle went at most as far as the speed assumed through the gap takes it, or as its last velocity
+            # did (the engine's own guess across the gap; the odometry's own step may have jumped: not that one)
             prev = self.track.online[k - 1] or pred
-            search.begin(Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + gap_s * self.cfg.reloc_gap_speed_mps))
+            reach = gap_s * self.cfg.reloc_gap_speed_mps
+            if self.cfg.outage_step is not OutageStep.odometry:
+                reach = max(reach, math.hypot(pred.x() - prev.x(), pred.y() - prev.y()))
+            search.begin(Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + reach))
             return
         if assoc.became_lost:
             assoc.became_lost = False
@@ -50,7 +55,7 @@ class MapSearching(Reanchoring):
                 x, y = assoc.explained_xy or (pred.x(), pred.y())
                 search.begin(self._doubting(k, search.lost_region(x, y, assoc.unexplained_m)))
         elif search.active is None and self._gps_went_silent(k):  # a second opinion on where GPS left it
-            search.begin(Region(pred.x(), pred.y(), self.cfg.reloc_radius_m))
+            self._search_since_gps(k, pred)
         search.widen_if_stuck(pred.x(), pred.y())
         if search.active is None:
             if search.watching is not None:
@@ -62,6 +67,39 @@ class MapSearching(Reanchoring):
                 or self._rival_at_estimate(k, pred, loc, active):
             return
         self._map_reanchor(k, pred, loc, active)
+
+    def _search_since_gps(self, k: int, pred: gtsam.Pose3) -> None:
+        """GPS has fallen silent: a search around where it left the estimate, begun ``reloc_gps_replay_m`` of
+        driving back (around the estimate there) and fed the frames since at once, so that the path driven under
+        the fixes already counts (all the fixes of a window may share one bias that only the roads can show)."""
+        k0 = self._replay_start(k, self.cfg.reloc_gps_replay_m)
+        at = self.track.online[k0] if k0 < k else None
+        centre = at if at is not None else pred
+        search = self._search
+        search.begin(Region(centre.x(), centre.y(), self.cfg.reloc_radius_m))
+        active = search.active
+        assert active is not None
+        for j in range(k0 if at is not None else k, k):
+            active.add(*self._search_pose(j, active), j)
+
+    def _replay_start(self, k: int, distance_m: float) -> int:
+        """The frame ``distance_m`` of driving before frame k (metres at the engine's scale), or the earliest one
+        after which every frame has an online estimate and no odometry gap (longer than ``reloc_gap_s``) intervenes."""
+        track = self.track
+        if distance_m <= 0 or self.alignment is None:
+            return k
+        scale, driven = self.alignment.scale, 0.0
+        x1, y1, _ = planar_of(track.raw[k])
+        j = k
+        while j - 1 >= track.first and track.online[j - 1] is not None \
+                and track.t[j] - track.t[j - 1] <= self.cfg.reloc_gap_s:
+            x0, y0, _ = planar_of(track.raw[j - 1])
+            driven += math.hypot(x1 - x0, y1 - y0) * scale
+            x1, y1 = x0, y0
+            j -= 1
+            if driven >= distance_m:
+                break
+        return j
 
     def _search_pose(self, k: int, search: Relocaliser) -> tuple[float, float, float]:
         """Frame k's planar odometry pose for ``search`` (x and y in metres, yaw), at the scale the search was first

@@ -54,7 +54,7 @@ def particle_config(cfg: FusionConfig) -> FusionConfig:
     return dataclasses.replace(cfg, reloc_min_distance_m=0.0, reloc_converge_radius_m=cfg.road_fix_cluster_m,
                                reloc_converge_mass=cfg.road_fix_min_mass,
                                reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
-                               reloc_uturn_probability=cfg.road_fix_uturn_probability,
+                               reloc_uturn_probability=cfg.road_fix_uturn_probability, reloc_uturn_at_vertex=0.0,
                                reloc_kld_epsilon=cfg.road_fix_kld_epsilon, reloc_particles=cfg.road_fix_particles)
 
 

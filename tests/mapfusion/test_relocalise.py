@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from mapfusion import FusionConfig, RoadMap
 from mapfusion.config import OutageStep
-from mapfusion.relocalise import Region, Relocaliser, RoadParticles, Search
+from mapfusion.relocalise import Region, Relocaliser, RoadParticles, Search, _edge_travel
 from mapfusion.roadmap import can_drive
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
@@ -42,9 +42,9 @@ def test_every_exit_is_legal_and_leaves_the_vertex_the_edge_leads_to(road):
 
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 10_000), steps=st.integers(1, 30), step_m=st.floats(0.5, 40.0),
-       turn=st.floats(-math.pi, math.pi))
-def test_particles_stay_on_their_roads_and_the_posterior_sums_to_one(road, seed, steps, step_m, turn):
-    p = RoadParticles(road, CFG, seed)
+       turn=st.floats(-math.pi, math.pi), uturn=st.sampled_from([0.0, 0.1, 1.0]))
+def test_particles_stay_on_their_roads_and_the_posterior_sums_to_one(road, seed, steps, step_m, turn, uturn):
+    p = RoadParticles(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=uturn), seed)
     rng = np.random.default_rng(seed)
     x0, y0 = road.xy_m[int(rng.integers(len(road)))]
     assert p.start(Region(float(x0), float(y0), 300.0), 0.0, n=500) > 0
@@ -56,6 +56,38 @@ def test_particles_stay_on_their_roads_and_the_posterior_sums_to_one(road, seed,
         for i in range(0, len(p), 50):  # each lies on its own edge's polyline (way-points ~1 m apart)
             pts = road.xy_m[road.edge_start[p.edge[i]]:road.edge_end[p.edge[i]]]
             assert np.min(np.hypot(*(pts - xy[i]).T)) <= road.config.spacing_m + 1e-6
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), uturn=st.floats(0.05, 3.0))
+def test_turning_back_at_a_vertex_takes_its_prior_share_of_the_posterior(road, seed, uturn):
+    """Particles just before the far vertex of a two-way edge drive past it with a target that says nothing (σ huge):
+    whichever exits the proposal picks, the importance weights leave turning back its prior share, uturn / (exits +
+    uturn), and every legal exit 1 / (exits + uturn)."""
+    p = RoadParticles(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=uturn), seed)
+    rng = np.random.default_rng(seed)
+    ex = p._exits
+    two_way = [e for e in range(len(road.edge_u)) if p._two_way[e] and ex.start[2 * e + 1] - ex.start[2 * e] >= 1
+               and road.edge_length_m[e] > 20.0]
+    e = int(two_way[int(rng.integers(len(two_way)))])
+    n = 40_000
+    exits = int(ex.start[2 * e + 1] - ex.start[2 * e])
+    p.edge, p.direction = np.full(n, e), np.ones(n, dtype=np.int64)
+    p.along, p.offset, p.log_scale = np.full(n, road.edge_length_m[e] - 1.0), np.zeros(n), np.zeros(n)
+    p.logw = np.full(n, -math.log(n))
+    p._drive(np.full(n, 5.0), np.zeros((n, 2)), 1e6)
+    w = np.exp(p.logw - np.max(p.logw))
+    w /= w.sum()
+    back = float(w[(p.edge == e) & (p.direction < 0)].sum())
+    assert back == pytest.approx(uturn / (exits + uturn), abs=0.02)
+    # on a one-way road nothing turns back (but at a dead end, as without the option)
+    travel = _edge_travel(road)
+    one_way = [f for f in range(len(road.edge_u)) if travel[f] == 1 and ex.start[2 * f + 1] > ex.start[2 * f]]
+    f = int(one_way[int(rng.integers(len(one_way)))])
+    p.edge, p.direction, p.along = np.full(n, f), np.ones(n, dtype=np.int64), np.full(n, road.edge_length_m[f] - 1.0)
+    p.logw = np.full(n, -math.log(n))
+    p._drive(np.full(n, 5.0), np.zeros((n, 2)), 1e6)
+    assert not np.any((p.edge == f) & (p.direction < 0))
 
 
 @settings(max_examples=25, deadline=None)
@@ -254,6 +286,40 @@ def test_a_vo_that_resumes_in_the_wrong_place_after_an_outage_is_found_again(roa
     assert found >= 3
 
 
+def test_a_search_after_a_long_fast_outage_covers_where_the_vehicle_went():
+    """The synthetic tunnel road at 28 m/s, GPS for the first 15 s, then the VO blind for 25 s (700 m, the tunnel):
+    the engine carries its last velocity along the road, so it resumes near the truth; the search begun there must
+    cover the truth, though the vehicle drove faster than reloc_gap_speed_mps assumes. With a radius from that speed
+    alone (measured before the change), the 476 m region missed the truth by 198 m, and the search re-anchored a
+    good estimate 1.1 km later on a place ~690 m off, where each drive ended."""
+    from mapfusion import MapFusion
+
+    road = RoadMap.from_osm(MAPS / "synthetic" / "tunnel.osm")
+    for seed in (1, 2):
+        x, y, yaw, _ = graph_route(road, seed, 3000.0, spacing_m=2.8, start_edge=0)
+        ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02, spacing_m=2.8)
+        eng = MapFusion(road, FusionConfig(map_relocalisation=True, road_fixes=False), odometry_rate_hz=10.0)
+        resumed, last, region = 420, None, None
+        for k in range(len(x)):
+            if k % 2 == 0 and k < 150:
+                lat, lon = road.projection.to_geo(x[k], y[k])
+                eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
+            if 170 <= k < resumed:
+                continue
+            rel = odometry_step(ox, oy, oyaw, k) if last is None or last == k - 1 else \
+                np.linalg.inv(_abs(ox, oy, oyaw, last)) @ _abs(ox, oy, oyaw, k)
+            eng.add_odometry(0.1 * k, rel)
+            last = k
+            if k == resumed:
+                assert eng._search.active is not None
+                region = eng._search.active.region
+        assert region is not None
+        assert math.hypot(x[resumed] - region.x_m, y[resumed] - region.y_m) < region.radius_m - 50.0, (seed, region)
+        eng.finish()
+        p = eng.estimate()
+        assert math.hypot(p.x() - x[-1], p.y() - y[-1]) < 15.0, seed
+
+
 def test_no_search_acts_while_gps_comes(road):
     """With fixes every second to the end, GPS places the estimate: map_relocalisation adds no re-anchoring,
     and the estimate is the one without it."""
@@ -287,6 +353,28 @@ def test_a_search_beside_a_biased_gps_re_anchors_sooner_once_gps_falls_silent(ro
         assert 69.0 + CFG.reloc_after_gps_s <= t_on <= t_off, (seed, t_on, t_off)  # never while fixes come
         earlier += t_off - t_on
     assert earlier >= 20.0, earlier
+
+
+def test_a_search_begun_back_under_a_biased_gps_re_anchors_at_the_silence(road):
+    """70 s of fixes all 150 m off, then none, on routes the map did not call lost under GPS: with
+    reloc_gps_replay_m (250 m) the search begun at the silence has already been fed the last 250 m driven under the
+    fixes, so it re-anchors sooner, mostly at the silence itself (measured, routes 6-9: 79.0 / 101.9 / 79.1 / 81.6 s
+    against 101.1 / 110.9 / 105.3 / 98.9 s begun at the silence; each ending within 7 m of the truth either way)."""
+    last_fix_s = 69.0
+    at_silence = 0
+    for seed in (6, 7, 8, 9):
+        x, y, yaw, _ = graph_route(road, seed, 2400.0)
+        ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
+        times = []
+        for replay_m in (0.0, CFG.reloc_gps_replay_m):
+            cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_gps_replay_m=replay_m)
+            eng, err = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0))
+            assert eng.relocalised_at and err < 15.0, (seed, replay_m, err)
+            times.append(eng.relocalised_at[0][0])
+        silent_s = last_fix_s + CFG.reloc_after_gps_s
+        assert silent_s - 0.5 <= times[1] < times[0], (seed, times)
+        at_silence += times[1] <= silent_s + 3.0
+    assert at_silence >= 3
 
 
 def test_a_map_re_anchoring_mends_the_path_its_search_matched(road):
