@@ -84,14 +84,16 @@ class MapSearching(Reanchoring):
 
     def _replay_start(self, k: int, distance_m: float) -> int:
         """The frame ``distance_m`` of driving before frame k (metres at the engine's scale), or the earliest one
-        after which every frame has an online estimate and no odometry gap (longer than ``reloc_gap_s``) intervenes."""
+        after which every frame has an online estimate, no odometry gap (longer than ``reloc_gap_s``) intervenes and
+        no map re-anchoring moved the estimate (the online estimates before it are where the engine then thought)."""
         track = self.track
         if distance_m <= 0 or self.alignment is None:
             return k
         scale, driven = self.alignment.scale, 0.0
+        floor = max(track.first, self._map_anchor[0] if self._map_anchor is not None else 0)
         x1, y1, _ = planar_of(track.raw[k])
         j = k
-        while j - 1 >= track.first and track.online[j - 1] is not None \
+        while j - 1 >= floor and track.online[j - 1] is not None \
                 and track.t[j] - track.t[j - 1] <= self.cfg.reloc_gap_s:
             x0, y0, _ = planar_of(track.raw[j - 1])
             driven += math.hypot(x1 - x0, y1 - y0) * scale

@@ -194,7 +194,8 @@ def test_a_start_region_is_refused_after_the_first_frame_or_when_not_finite(road
 
 def test_a_lost_estimate_is_found_again_on_the_road_network(road):
     """GPS at the start puts the estimate 150 m off (a biased fix window, then no GPS): with
-    map_relocalisation the engine calls it lost, searches the roads and re-anchors on the truth; without it
+    map_relocalisation the engine searches the roads and re-anchors on the truth (since reloc_gps_replay_m the
+    search begun when GPS falls silent may find it before the estimate is called lost); without it
     (and without road fixes) the estimate stays off. The road fixes alone (the default) also bring it back:
     8.6 m from the truth at the end when measured."""
     from mapfusion import MapFusion
@@ -219,7 +220,7 @@ def test_a_lost_estimate_is_found_again_on_the_road_network(road):
     off, err_off = run(False)
     on, err_on = run(True)
     assert err_off > 50.0  # the bias stays without the search
-    assert on.counters.lost_events >= 1 and on.counters.map_relocalisations >= 1
+    assert on.counters.map_relocalisations >= 1
     assert err_on < 15.0, (err_on, on.relocalised_at)
     fixed, err_fixed = run(False, road_fixes=True)
     assert fixed.counters.road_fixes >= 1 and err_fixed < 15.0, err_fixed
@@ -366,7 +367,7 @@ def test_a_search_begun_back_under_a_biased_gps_re_anchors_at_the_silence(road):
         x, y, yaw, _ = graph_route(road, seed, 2400.0)
         ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
         times = []
-        for replay_m in (0.0, CFG.reloc_gps_replay_m):
+        for replay_m in (0.0, 250.0):
             cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_gps_replay_m=replay_m)
             eng, err = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0))
             assert eng.relocalised_at and err < 15.0, (seed, replay_m, err)
