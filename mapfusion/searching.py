@@ -73,13 +73,13 @@ class MapSearching(Reanchoring):
         driving back (around the estimate there) and fed the frames since at once, so that the path driven under
         the fixes already counts (all the fixes of a window may share one bias that only the roads can show)."""
         k0 = self._replay_start(k, self.cfg.reloc_gps_replay_m)
-        at = self.track.online[k0] if k0 < k else None
-        centre = at if at is not None else pred
+        centre = self.track.online[k0] if k0 < k else pred  # (every frame it steps back over has an estimate)
+        assert centre is not None
         search = self._search
         search.begin(Region(centre.x(), centre.y(), self.cfg.reloc_radius_m))
         active = search.active
         assert active is not None
-        for j in range(k0 if at is not None else k, k):
+        for j in range(k0, k):
             active.add(*self._search_pose(j, active), j)
 
     def _replay_start(self, k: int, distance_m: float) -> int:
