@@ -61,6 +61,22 @@ class Match:
     cost: float
 
 
+#: numpy's clip ufunc itself: np.clip's Python wrapper costs more than the clipping of a disc's few dozen
+#: points (issue 21); where a numpy lacks it, minimum then maximum give the same values.
+_clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None) or (
+    lambda v, lo, hi, out: np.maximum(np.minimum(v, hi, out=out), lo, out=out))
+_TWO_PI = 2.0 * math.pi
+_DEG_PER_RAD = 180.0 / math.pi
+
+
+def _new_match(**values) -> Match:
+    """A Match from every one of its fields by name, without the frozen dataclass's __init__ (sixteen
+    ``object.__setattr__`` calls, a tenth of a single match's cost, issue 21); the instance is the same."""
+    m = object.__new__(Match)
+    m.__dict__.update(values)
+    return m
+
+
 def check_pose_args(x: float, y: float, yaw: float, radius: float) -> None:
     """ValueError naming the argument when a coordinate, the yaw or the radius is unusable."""
     for name, v in (("x", x), ("y", y), ("yaw", yaw)):
@@ -112,13 +128,6 @@ def match_candidates(
     return found
 
 
-def _offsets(x: float, y: float, px: float, py: float, road_yaw: float) -> tuple[float, float]:
-    """(longitudinal, signed lateral) of point (x, y) in the frame at (px, py) heading road_yaw."""
-    dx, dy = x - px, y - py
-    c, s = math.cos(road_yaw), math.sin(road_yaw)
-    return c * dx + s * dy, -s * dx + c * dy
-
-
 def match(
     road: RoadMap,
     x: float,
@@ -140,7 +149,8 @@ def match(
         sl = cells.slices(x, y, radius)
         if not sl:
             return None
-        b = cells.gather(cells.block, sl)
+        block = cells.block
+        b = block[:, sl[0][0]:sl[0][1]] if len(sl) == 1 else np.concatenate([block[:, i:j] for i, j in sl], axis=1)
         found = _best(b[0], b[1], b[2], b[3], b[4], x, y, yaw, angle_weight_m_per_deg, radius)
         if found is None:
             return None
@@ -184,15 +194,16 @@ def _best(px: np.ndarray, py: np.ndarray, c: np.ndarray, s: np.ndarray, sign: np
     D = E + w·A over their legal travel directions, those farther than ``radius`` left out:
     ``(position, reversed against the heading, E, A, D)``, or None when every one is. Ties go to the
     earlier point."""
-    e = np.hypot(px - x, py - y)
+    e = px - x
+    dy = py - y
+    np.hypot(e, dy, out=e)
     cos_d = c * math.cos(yaw)
     cos_d += s * math.sin(yaw)
     a = sign * cos_d
     np.maximum(a, cos_d, out=a)  # |cos Δ| where both directions are legal (sign -1), cos Δ where one is
-    np.minimum(a, 1.0, out=a)  # (np.clip's own values at half its cost on a disc's few dozen points)
-    np.maximum(a, -1.0, out=a)
+    _clip(a, -1.0, 1.0, out=a)
     np.arccos(a, out=a)
-    np.degrees(a, out=a)
+    a *= _DEG_PER_RAD  # (np.degrees' own product, without its keyword call)
     d = a + e if w == 1.0 else a * w + e  # (a · 1 is a: the default weight saves a pass)
     k = int(d.argmin())
     if e[k] > radius:  # the best lies outside the disc (rare: only when nothing inside matches well)
@@ -200,39 +211,29 @@ def _best(px: np.ndarray, py: np.ndarray, c: np.ndarray, s: np.ndarray, sign: np
         k = int(d.argmin())
         if d[k] == math.inf:
             return None
-    return k, bool(cos_d[k] < 0.0 and sign[k] < 0.0), float(e[k]), float(a[k]), float(d[k])
+    # (.item: Python scalars without a numpy scalar between, the same values)
+    return k, cos_d.item(k) < 0.0 and sign.item(k) < 0.0, e.item(k), a.item(k), d.item(k)
 
 
 def _make_match(road: RoadMap, i: int, rev: bool, x: float, y: float, e: float, a: float, d: float) -> Match:
     # (.item: a Python scalar straight from the array, the same value as float()/int() of an element)
-    px, py = road.xy_m.item(i, 0), road.xy_m.item(i, 1)
+    xy = road.xy_m
+    px, py = xy.item(i, 0), xy.item(i, 1)
     if road.against_drawing.item(i):  # (rev came against the legal heading, which is the drawing's reverse)
         rev = not rev
-    draw_yaw = road.yaw_rad.item(i)
-    road_yaw = draw_yaw + math.pi if rev else draw_yaw
-    road_yaw = (road_yaw + math.pi) % (2 * math.pi) - math.pi
-    lon, lat = _offsets(x, y, px, py, road_yaw)
-    lon_draw = -lon if rev else lon
+    road_yaw = road.yaw_rad.item(i)
+    if rev:
+        road_yaw += math.pi
+    road_yaw = (road_yaw + math.pi) % _TWO_PI - math.pi
+    dx, dy = x - px, y - py  # the pose's offset in the map pose's frame: (longitudinal, signed lateral)
+    c, s = math.cos(road_yaw), math.sin(road_yaw)
+    lon, lat = c * dx + s * dy, -s * dx + c * dy
     way = road.way_index.item(i)
     edge = road.edge.item(i)
-    return Match(
-        index=i,
-        x_m=px,
-        y_m=py,
-        yaw_rad=road_yaw,
-        reversed=rev,
-        way_id=road.way_ids.item(way),
-        edge=edge,
-        is_join=edge < 0,
-        lanes=road.way_lanes.item(way),
-        lateral_m=abs(lat),
-        signed_lateral_m=lat,
-        longitudinal_m=lon,
-        along_m=road.s_m.item(i) + lon_draw,
-        distance_m=e,
-        angle_deg=a,
-        cost=d,
-    )
+    return _new_match(index=i, x_m=px, y_m=py, yaw_rad=road_yaw, reversed=rev, way_id=road.way_ids.item(way),
+                      edge=edge, is_join=edge < 0, lanes=road.way_lanes.item(way), lateral_m=abs(lat),
+                      signed_lateral_m=lat, longitudinal_m=lon, along_m=road.s_m.item(i) + (-lon if rev else lon),
+                      distance_m=e, angle_deg=a, cost=d)
 
 
 def _match_k(road: RoadMap, x, y, c, s, radius: float, w: float, k: int):

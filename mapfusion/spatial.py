@@ -57,22 +57,33 @@ class CellIndex:
 
     def slices(self, x: float, y: float, radius_m: float) -> list[tuple[int, int]]:
         """(start, stop) in cell order of every non-empty row of cells the disc's bounding box covers."""
-        cell = self.cell_m
-        c0 = max(math.floor((x - radius_m - self.x0) / cell), 0)
-        c1 = min(math.floor((x + radius_m - self.x0) / cell), self.ncol - 1)
-        r0 = max(math.floor((y - radius_m - self.y0) / cell), 0)
-        r1 = min(math.floor((y + radius_m - self.y0) / cell), self.nrow - 1)
+        cell, ncol, start = self.cell_m, self.ncol, self._start
+        # (comparisons rather than min/max calls: this runs once a match, issue 21)
+        c0 = math.floor((x - radius_m - self.x0) / cell)
+        c1 = math.floor((x + radius_m - self.x0) / cell)
+        r0 = math.floor((y - radius_m - self.y0) / cell)
+        r1 = math.floor((y + radius_m - self.y0) / cell)
+        if c0 < 0:
+            c0 = 0
+        if r0 < 0:
+            r0 = 0
+        if c1 >= ncol:
+            c1 = ncol - 1
+        if r1 >= self.nrow:
+            r1 = self.nrow - 1
         if c0 > c1 or r0 > r1:
             return []
-        ncol, start = self.ncol, self._start
         if start is not None:
-            out = [(start[row + c0], start[row + c1 + 1]) for row in range(r0 * ncol, r1 * ncol + 1, ncol)]
-        else:
-            rows = np.arange(r0 * ncol, r1 * ncol + 1, ncol)
-            b = np.searchsorted(self.key, np.concatenate([rows + c0, rows + c1 + 1])).tolist()
-            m = len(rows)
-            out = list(zip(b[:m], b[m:]))
-        return [s for s in out if s[1] > s[0]]
+            out = []
+            for row in range(r0 * ncol, r1 * ncol + 1, ncol):
+                a, b = start[row + c0], start[row + c1 + 1]
+                if b > a:
+                    out.append((a, b))
+            return out
+        rows = np.arange(r0 * ncol, r1 * ncol + 1, ncol)
+        b = np.searchsorted(self.key, np.concatenate([rows + c0, rows + c1 + 1])).tolist()
+        m = len(rows)
+        return [s for s in zip(b[:m], b[m:]) if s[1] > s[0]]
 
     def gather(self, arr: np.ndarray, sl: list[tuple[int, int]]) -> np.ndarray:
         """The entries of ``arr`` (in cell order, along its last axis) the slices select, as one array."""

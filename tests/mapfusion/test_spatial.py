@@ -3,14 +3,16 @@ over every way-point answers."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import gtsam
 import numpy as np
 from hypothesis import given
+from hypothesis.extra import numpy as hnp
 from hypothesis import strategies as st
 
-from mapfusion.matcher import lateral_bound_ok, map_pose, match, match_candidates, match_range
+from mapfusion.matcher import Match, _clip, lateral_bound_ok, map_pose, match, match_candidates, match_range
 from mapfusion.spatial import CellIndex
 
 angles = st.floats(-math.pi, math.pi)
@@ -98,3 +100,23 @@ def test_query_radius_refuses_a_non_finite_centre_and_holds_everything_in_an_inf
             helsinki.query_radius(*bad)
     assert len(helsinki.query_radius(0.0, 0.0, math.inf)) == len(helsinki)
     assert helsinki.query_radius(0.0, 0.0, -1.0).size == 0
+
+
+@given(i=st.integers(0, 10**6), dx=st.floats(-15, 15), dy=st.floats(-15, 15), yaw=angles)
+def test_a_match_built_by_its_fast_path_is_the_dataclass_it_declares(helsinki, i, dx, dy, yaw):
+    """The single call builds its Match without the frozen dataclass's __init__ (issue 21): the instance has
+    every declared field and nothing else, and equals (and hashes as) the one __init__ builds."""
+    j = i % len(helsinki)
+    m = match(helsinki, float(helsinki.xy_m[j, 0] + dx), float(helsinki.xy_m[j, 1] + dy), yaw)
+    assert m is not None  # (within 15 m of a way-point, inside the default 20 m)
+    assert set(vars(m)) == {f.name for f in dataclasses.fields(Match)}
+    rebuilt = Match(**vars(m))
+    assert m == rebuilt and hash(m) == hash(rebuilt)
+    assert m.is_join == (m.edge < 0) and m.lateral_m == abs(m.signed_lateral_m)
+
+
+@given(hnp.arrays(np.float64, st.integers(0, 64), elements=st.floats(-3.0, 3.0)))
+def test_the_matchers_clip_is_numpys(values):
+    got = values.copy()
+    _clip(got, -1.0, 1.0, out=got)
+    assert np.array_equal(got, np.clip(values, -1.0, 1.0))
