@@ -758,6 +758,12 @@ class FusionConfig:
     road_fix_radius_m: float = param(50.0, "Radius of the region around the estimate the particles start in (at "
                                      "least 3 × the estimate's positional σ).", unit="m", min=1.0, max=100000.0,
                                      source="issue 16; by measurement")
+    road_fix_radius_max_m: float = param(2000.0, "Largest region the particles start in, however long the drive "
+                                         "went without a fix: wider, road_fix_particles cover it too thinly to "
+                                         "converge, and their cost keeps growing as they spread over the map "
+                                         "(finding a vehicle that far off is map_relocalisation's search).",
+                                         unit="m", min=1.0, max=100000.0,
+                                         source="issue 21: a one-hour drive whose fixes never came (mapfusion bench)")
     road_fix_scale_factor: float = param(1.3, "The particles' scales start within the estimate's scale ×/÷ this "
                                          "(a monocular VO's scale wanders by tens of percent).", min=1.0, max=10.0,
                                          source="issue 16 item 3; real TrianFlow scale 25-31 on KITTI 00")

@@ -222,7 +222,8 @@ class RoadFixes:
         f = cfg.road_fix_scale_factor
         # around the estimate, as far as it may be off: its marginal's 3 σ, or 3 × what the odometry may have
         # drifted since the last fix (a restart after a long stretch without one)
-        radius = max(cfg.road_fix_radius_m, 3.0 * sigma_m, 3.0 * cfg.road_fix_drift * self._unfixed_m)
+        radius = min(max(cfg.road_fix_radius_m, 3.0 * sigma_m, 3.0 * cfg.road_fix_drift * self._unfixed_m),
+                     max(cfg.road_fix_radius_max_m, cfg.road_fix_radius_m))
         self.particles.start(Region(pred.x(), pred.y(), radius), yaw, scale_range=(scale / f, scale * f))
         self.starts += 1
         self._anchor = self._last_xy = (x, y)
