@@ -20,6 +20,8 @@ def test_bench_lines_carry_their_anchors_and_ratios():
     assert rel["particles"] > 0 and math.isclose(rel["realtime_factor"], rel["drive_s"] / rel["compute_s"])
     eng, hmm = rows["engine"], rows["engine_hmm"]
     assert eng["map_priors"] > 0  # the drive exercises the map
+    # growth over the drive after its GPS (300 s: 170 s of it) as well as over the whole drive
+    assert math.isfinite(eng["growth_after_gps"]) and eng["growth_after_gps"] > 0 and hmm["growth_after_gps"] > 0
     # each round's ratio is to the anchor measured beside it; the line gives their median
     r = eng["rounds"]
     assert len(r["ratio_to_bare"]) == 3

@@ -190,23 +190,24 @@ def test_a_start_spreads_at_most_road_fix_particles_per_scale_band(road, cap, si
 
 
 @settings(max_examples=20, deadline=None)
-@given(unfixed_m=st.floats(0.0, 5000.0), sigma_m=st.floats(0.5, 100.0))
+@given(unfixed_m=st.floats(0.0, 20000.0), sigma_m=st.floats(0.5, 1000.0))
 def test_a_re_anchoring_restarts_the_particles_around_the_new_estimate_in_the_start_radius(road, unfixed_m, sigma_m):
     """A start after a long stretch without a fix spreads over 3 × the drift since (the estimate may be that far
-    off); after a re-anchoring the estimate is placed afresh, so the next start's region is the start radius
-    (or 3 σ) again, not the old drift's."""
+    off), up to road_fix_radius_max_m; after a re-anchoring the estimate is placed afresh, so the next start's
+    region is the start radius (or 3 σ) again, not the old drift's."""
     fixes = RoadFixes(road, ON, Counters())
     x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0))
     fixes._unfixed_m = unfixed_m
     fixes.step(0, 10.0, (0.0, 0.0, 0.0), 1.0, pred, sigma_m)
-    grown = max(ON.road_fix_radius_m, 3.0 * sigma_m, 3.0 * ON.road_fix_drift * unfixed_m)
+    grown = min(max(ON.road_fix_radius_m, 3.0 * sigma_m, 3.0 * ON.road_fix_drift * unfixed_m), ON.road_fix_radius_max_m)
     assert fixes.starts == 1 and fixes._ref_slack_m == pytest.approx(grown)
     fixes.reanchored()
     assert fixes.particles is None
     fixes.step(1, 10.1, (0.0, 0.0, 0.0), 1.0, pred, sigma_m)
     fixes.step(2, 10.2, (ON.reloc_step_m, 0.0, 0.0), 1.0, pred, sigma_m)  # (a start after it waits for a straight step)
-    assert fixes.starts == 2 and fixes._ref_slack_m == pytest.approx(max(ON.road_fix_radius_m, 3.0 * sigma_m))
+    assert fixes.starts == 2 and fixes._ref_slack_m == pytest.approx(min(max(ON.road_fix_radius_m, 3.0 * sigma_m),
+                                                                         ON.road_fix_radius_max_m))
 
 
 @pytest.mark.parametrize("why", ["every start", "after a re-anchoring"])
