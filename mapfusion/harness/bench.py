@@ -338,7 +338,8 @@ def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (1
     eng, hmm = rounds[0][1], rounds[0][2]
     yield {"benchmark": "engine", "frames": eng.frames, "map_priors": eng.map_priors, "frames_per_s": med(eng_fps),
            "growth": med([e.growth for _, e, _ in rounds]),
-           "growth_after_gps": med([e.growth_after_gps for _, e, _ in rounds]), "bare_chain_frames_per_s": med(bare_fps),
+           "growth_after_gps": med([e.growth_after_gps for _, e, _ in rounds]),
+           "bare_chain_frames_per_s": med(bare_fps),
            "ratio_to_bare": med(eng_ratio), "rounds": {"frames_per_s": eng_fps, "bare_chain_frames_per_s": bare_fps,
                                                       "ratio_to_bare": eng_ratio}}
     yield {"benchmark": "engine_hmm", "frames": hmm.frames, "map_priors": hmm.map_priors, "frames_per_s": med(hmm_fps),
