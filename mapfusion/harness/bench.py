@@ -89,6 +89,7 @@ def bench_match(road: RoadMap, n_poses: int = 50000, n_single: int = 5000, seed:
         road.match_many(x, y, yaw)
         best = min(best, time.perf_counter() - t0)
     batch = n_poses / best
+    road.match(float(x[0]), float(y[0]), float(yaw[0]))  # warm-up: the first single call builds the cell index
     t0 = time.perf_counter()
     for j in range(n_single):
         road.match(float(x[j]), float(y[j]), float(yaw[j]))
