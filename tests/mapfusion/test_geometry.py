@@ -7,6 +7,7 @@ import math
 import numpy as np
 from hypothesis import assume, given
 from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 from mapfusion.geometry import (
     cumulative_length,
@@ -88,6 +89,17 @@ def test_resample_straight_line(length, spacing):
     assert np.isclose(s[-1], length) and np.allclose(pts[:, 1], 0.0)
     n = max(1, round(length / spacing))
     assert len(pts) == n + 1
+
+
+@given(hnp.arrays(np.float64, st.integers(0, 300), elements=st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True), st.floats(-7.0, 7.0),
+    st.sampled_from([0.0, -0.0, math.pi, -math.pi, 2 * math.pi, math.pi - 2**-50, -math.pi - 2**-50]))))
+def test_wrap_angle_of_an_array_is_the_formula_to_the_bit(a):
+    """Long arrays take a faster path (issue 21) that must give (a + π) mod 2π − π exactly, NaN and ±∞ included."""
+    want = (a + np.pi) % (2 * np.pi) - np.pi
+    got = wrap_angle(a)
+    assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True)
+    assert np.array_equal(np.signbit(got), np.signbit(want))
 
 
 @given(st.floats(-1e6, 1e6, allow_nan=False))
