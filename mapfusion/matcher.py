@@ -149,8 +149,7 @@ def match(
         sl = cells.slices(x, y, radius)
         if not sl:
             return None
-        block = cells.block
-        b = block[:, sl[0][0]:sl[0][1]] if len(sl) == 1 else np.concatenate([block[:, i:j] for i, j in sl], axis=1)
+        b = cells.gather(cells.block, sl)
         found = _best(b[0], b[1], b[2], b[3], b[4], x, y, yaw, angle_weight_m_per_deg, radius)
         if found is None:
             return None
