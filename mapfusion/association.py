@@ -14,6 +14,7 @@ one prior per ``prior_spacing_m`` of driving.
 
 from __future__ import annotations
 
+import collections
 import math
 
 import gtsam
@@ -30,6 +31,9 @@ from .roadmap import RoadMap
 #: Edges of at most this many way-points are scanned whole for the tracked road's best way-point
 #: (cheaper than a radius query); a longer one's are taken from the query.
 EDGE_SCAN_MAX = 1024
+
+#: Distances within this of reloc_gps_fit_m count as covering it (the running sums' rounding decides nothing).
+FIT_TIE_M = 1e-6
 
 #: Floor of the band prior's σ across the road: the moment-matched factor of an estimate far
 #: outside the band is next to rigid, and GTSAM's linear algebra should not see a σ of micrometres.
@@ -61,6 +65,9 @@ class MapAssociation:
         self.became_lost = False  # set when the estimate becomes lost; the engine clears it
         self.explained_xy: tuple[float, float] | None = None  # the estimate where a road last explained it
         self._since_prior_m = math.inf  # odometry distance since the last map prior
+        # the estimate's recent path: (distance, on a road?) per frame over the last reloc_gps_fit_m
+        self._fit: collections.deque[tuple[float, bool]] = collections.deque()
+        self._fit_m = self._fit_on_m = 0.0
 
     def reset(self) -> None:
         """Forget the last road (after a re-localisation)."""
@@ -111,6 +118,27 @@ class MapAssociation:
             self.counters.lost_events += 1
             if self.hmm is not None:
                 self.hmm.reset()
+
+    def _record_fit(self, m: Match | None, moved_m: float) -> None:
+        """One frame of the estimate's path: on a road (within its width + ``reloc_gps_fit_margin_m`` of the
+        centre line, its heading within ``prior_max_angle_deg``) or not, over the last ``reloc_gps_fit_m``."""
+        cfg = self.cfg
+        on = m is not None and m.angle_deg <= cfg.prior_max_angle_deg and \
+            m.lateral_m <= m.lanes * cfg.lane_width_m + cfg.reloc_gps_fit_margin_m
+        self._fit.append((moved_m, on))
+        self._fit_m += moved_m
+        self._fit_on_m += moved_m if on else 0.0
+        while len(self._fit) > 1 and self._fit_m - self._fit[0][0] >= cfg.reloc_gps_fit_m - FIT_TIE_M:
+            d, was_on = self._fit.popleft()
+            self._fit_m -= d
+            self._fit_on_m -= d if was_on else 0.0
+
+    def road_fit(self) -> float | None:
+        """The share of the estimate's last ``reloc_gps_fit_m`` of driving that lay on a road (None before any
+        driving)."""
+        if self._fit_m <= 0.0:
+            return None
+        return min(max(self._fit_on_m / self._fit_m, 0.0), 1.0)
 
     @property
     def unexplained_m(self) -> float:
@@ -179,6 +207,8 @@ class MapAssociation:
             if self.cfg.map_relocalisation:  # (the single-frame path watches for lost only when it can act on it)
                 self._watch_lost(m is not None and m.cost <= self.cfg.hmm_lost_cost_m, moved_m, pred)
         self._since_prior_m += moved_m
+        if self.cfg.map_relocalisation and self.cfg.reloc_gps_fit_min > 0:
+            self._record_fit(m, moved_m)
         if m is None:
             return None, None
         self.counters.matches += 1

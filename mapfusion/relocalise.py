@@ -85,7 +85,7 @@ class Located:
 class RoadParticles:
     """The particle filter over positions on the road graph (see the module docstring)."""
 
-    def __init__(self, road: RoadMap, cfg: FusionConfig, seed: int = 0) -> None:
+    def __init__(self, road: RoadMap, cfg: FusionConfig, seed: int | list[int] = 0) -> None:
         self.road, self.cfg = road, cfg
         self.rng = np.random.default_rng(seed)
         n_pts = int(np.count_nonzero(~road.is_join))  # edges' way-points come first, join curves after
@@ -486,7 +486,7 @@ class Relocaliser:
     """Feeds :class:`RoadParticles` from an odometry stream of planar poses (x, y, yaw in the odometry's
     frame, metres after the odometry's scale) and says where the vehicle is once it has converged."""
 
-    def __init__(self, road: RoadMap, cfg: FusionConfig, region: Region, seed: int = 0,
+    def __init__(self, road: RoadMap, cfg: FusionConfig, region: Region, seed: int | list[int] = 0,
                  scale_range: tuple[float, float] = (1.0, 1.0)) -> None:
         self.particles = RoadParticles(road, cfg, seed)
         self.region = region
@@ -547,10 +547,13 @@ class Search:
         self.watching: Relocaliser | None = None  # a search that re-anchored, still fed (reloc_watch_m)
         self._watch_until_m = 0.0
 
-    def begin(self, region: Region, scale_range: tuple[float, float] = (1.0, 1.0)) -> None:
+    def begin(self, region: Region, scale_range: tuple[float, float] = (1.0, 1.0), frame: int | None = None) -> None:
         """Start a search in ``region`` (a new one replaces any running, and ends any watched); its particles'
-        scales spread over ``scale_range`` (map metres per odometry unit)."""
-        self.active = Relocaliser(self.road, self.cfg, region, self.cfg.reloc_seed + self.searches, scale_range)
+        scales spread over ``scale_range`` (map metres per odometry unit). ``frame``: the engine's frame it begins
+        at, which seeds it (with ``reloc_seed``), so that a search's draws do not depend on how many searches came
+        before it (without: the count of searches so far does)."""
+        seed: int | list[int] = self.cfg.reloc_seed + self.searches if frame is None else [self.cfg.reloc_seed, frame]
+        self.active = Relocaliser(self.road, self.cfg, region, seed, scale_range)
         self.watching = None
         self.searches += 1
 
@@ -578,12 +581,13 @@ class Search:
             self.watching = None
         return loc
 
-    def widen_if_stuck(self, x_m: float, y_m: float) -> None:
+    def widen_if_stuck(self, x_m: float, y_m: float, frame: int | None = None) -> None:
         """A search that has not converged over ``reloc_give_up_m`` starts again around (x, y) with twice
         its radius (up to ``reloc_max_radius_m``): the vehicle may have left the region."""
         a = self.active
         if a is not None and a.particles.driven_m >= self.cfg.reloc_give_up_m:
-            self.begin(Region(x_m, y_m, min(2.0 * a.region.radius_m, self.cfg.reloc_max_radius_m)), a.scale_range)
+            self.begin(Region(x_m, y_m, min(2.0 * a.region.radius_m, self.cfg.reloc_max_radius_m)), a.scale_range,
+                       frame)
 
     def lost_region(self, x_m: float, y_m: float, unexplained_m: float) -> Region:
         """Where to look when lost: around the estimate where a road last explained it (``x_m``, ``y_m``), the

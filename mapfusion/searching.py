@@ -47,16 +47,16 @@ class MapSearching(Reanchoring):
             reach = gap_s * self.cfg.reloc_gap_speed_mps
             if self.cfg.outage_step is not OutageStep.odometry:
                 reach = max(reach, math.hypot(pred.x() - prev.x(), pred.y() - prev.y()))
-            search.begin(Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + reach))
+            search.begin(Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + reach), frame=k)
             return
         if assoc.became_lost:
             assoc.became_lost = False
             if search.active is None:  # (a running search goes on: its particles know more than a new one's)
                 x, y = assoc.explained_xy or (pred.x(), pred.y())
-                search.begin(self._doubting(k, search.lost_region(x, y, assoc.unexplained_m)))
-        elif search.active is None and self._gps_went_silent(k):  # a second opinion on where GPS left it
-            self._search_since_gps(k, pred)
-        search.widen_if_stuck(pred.x(), pred.y())
+                search.begin(self._doubting(k, search.lost_region(x, y, assoc.unexplained_m)), frame=k)
+        elif search.active is None and self._gps_went_silent(k) and self._gps_left_it_off_the_roads(k):
+            self._search_since_gps(k, pred)  # a second opinion on where GPS left it
+        search.widen_if_stuck(pred.x(), pred.y(), k)
         if search.active is None:
             if search.watching is not None:
                 self._watch_reanchoring(k, pred)
@@ -68,6 +68,19 @@ class MapSearching(Reanchoring):
             return
         self._map_reanchor(k, pred, loc, active)
 
+    def _gps_left_it_off_the_roads(self, k: int) -> bool:
+        """GPS has fallen silent: does where it left the estimate need a second opinion? Only when less than
+        ``reloc_gps_fit_min`` of the estimate's last ``reloc_gps_fit_m`` lay on a road: fixes that share one bias
+        place the path off the roads most of the way, good ones on them (a search around a good estimate can only
+        confirm it, or, converging on a look-alike path, move it away)."""
+        fit_min = self.cfg.reloc_gps_fit_min
+        fit = self._association.road_fit()
+        if fit_min <= 0 or fit is None or fit < fit_min:
+            return True
+        log.info("t=%.1f s: GPS silent, %.0f%% of the estimate's last %.0f m on a road: no search", self.track.t[k],
+                 100 * fit, self.cfg.reloc_gps_fit_m)
+        return False
+
     def _search_since_gps(self, k: int, pred: gtsam.Pose3) -> None:
         """GPS has fallen silent: a search around where it left the estimate, begun ``reloc_gps_replay_m`` of
         driving back (around the estimate there) and fed the frames since at once, so that the path driven under
@@ -76,7 +89,7 @@ class MapSearching(Reanchoring):
         centre = self.track.online[k0] if k0 < k else pred  # (every frame it steps back over has an estimate)
         assert centre is not None
         search = self._search
-        search.begin(Region(centre.x(), centre.y(), self.cfg.reloc_radius_m))
+        search.begin(Region(centre.x(), centre.y(), self.cfg.reloc_radius_m), frame=k)
         active = search.active
         assert active is not None
         for j in range(k0, k):
@@ -211,11 +224,11 @@ class MapSearching(Reanchoring):
         if search.active is None or not self._beside_gps:
             assoc.became_lost = False
             x, y = assoc.explained_xy or (pred.x(), pred.y())
-            search.begin(search.lost_region(x, y, assoc.unexplained_m))
+            search.begin(search.lost_region(x, y, assoc.unexplained_m), frame=k)
             self._beside_gps = True
         assert search.active is not None
         if search.active.answer is None:  # (a converged search follows the vehicle however far it drives)
-            search.widen_if_stuck(pred.x(), pred.y())
+            search.widen_if_stuck(pred.x(), pred.y(), k)
         loc = search.active.add(*self._search_pose(k, search.active), k)  # (not feed: a converged search goes on)
         if loc is not None and math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
             search.active = None  # the map confirms GPS: a search that found the estimate ends
