@@ -334,9 +334,11 @@ def test_no_search_acts_while_gps_comes(road):
 
 
 def _biased_window(road, seed: int, under_gps: bool, fixes_until_k: int):
+    """A drive whose 70 s of fixes all lie 150 m off; the silence's search is begun at the silence (no replay of the
+    path under GPS, reloc_gps_replay_m 0), so that what the tests using it see is the search beside GPS alone."""
     x, y, yaw, _ = graph_route(road, seed, 2400.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
-    cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_under_gps=under_gps)
+    cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_under_gps=under_gps, reloc_gps_replay_m=0.0)
     return _feed(road, cfg, x, y, ox, oy, oyaw, fixes_until_k, fix_offset=(106.0, 106.0))
 
 

@@ -240,7 +240,8 @@ def test_a_steady_start_waits_for_the_turn_to_end(road, why, turn_deg_per_m, str
 
 def test_road_fixes_wait_while_a_search_runs(road):
     """With map_relocalisation and reloc_gps_fit_min 0 a search starts when GPS falls silent (a second opinion on
-    where GPS left the estimate, here on the roads: the default would not search); by default no road fix enters
+    where GPS left the estimate, here on the roads: the default would not search; begun at the silence, with no
+    replay of the path under GPS); by default no road fix enters
     the graph while it runs (the fixes' particles start around the very estimate the search questions), and the
     fixes come once it has ended. With road_fix_while_searching they do come during the search. (Route 2: on
     route 1 the search, seeded by the frame it begins at since 2026-11-25, no longer ends within the drive.)"""
@@ -248,7 +249,7 @@ def test_road_fixes_wait_while_a_search_runs(road):
     seen = {}
     for waits in (True, False):
         cfg = dataclasses.replace(ON, map_relocalisation=True, road_fix_while_searching=not waits,
-                                  reloc_gps_fit_min=0.0)
+                                  reloc_gps_fit_min=0.0, reloc_gps_replay_m=0.0)
         eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
         x, y, ox, oy, oyaw = drive
         during = after = searched = 0
