@@ -163,9 +163,9 @@ def _kidnapped(request):
 
 @family("kidnapped")
 @pytest.mark.xfail(strict=True, reason="measured 2026-11-25 (session 24: searches seeded by their frame, "
-                   "reloc_gps_fit_min): this family 5 of 8 within 500 m (VO jump Helsinki s1 is not knocked off — the "
-                   "engine carries the last velocity along the road over the VO's gap —; GPS bias Helsinki s1 886 m, VO "
-                   "jump Helsinki s2 581 m, VO jump Kotka s2 3,182 m); over seeds 1–30 77 of 120, see docs/method.md — "
+                   "reloc_gps_fit_min, reloc_gps_replay_m 500 m): this family 6 of 8 within 500 m (VO jump Helsinki s1 "
+                   "is not knocked off — the engine carries the last velocity along the road over the VO's gap —; VO "
+                   "jump Helsinki s2 581 m, VO jump Kotka s2 3,182 m); over seeds 1–30 85 of 120, see docs/method.md — "
                    "the search needs turns to converge, and a region of 200–400 m still holds look-alike paths; needs "
                    "90%")
 def test_kidnapped_runs_are_relocalised_within_500_m(request):
@@ -180,7 +180,7 @@ def test_kidnapped_runs_are_relocalised_within_500_m(request):
 @pytest.mark.xfail(strict=True, reason="measured 2026-11-25 (session 24): mean online error after re-localisation "
                    "6.7 m over this family (5.1–8.1 m a run: the engine tracks after the search as after a GPS "
                    "initialisation, its along-road error 5–12 m between junctions); no run here re-anchored wrong; "
-                   "over seeds 1–30 10 of 120 runs wrong, the longest 1,701 m (a wrong convergence the watch does not "
+                   "over seeds 1–30 9 of 120 runs wrong, the longest 1,701 m (a wrong convergence the watch does not "
                    "see is undone only by the next lost event)")
 def test_kidnapped_runs_are_within_5_m_after_relocalisation_and_never_stay_wrong(request):
     """Issue 17: after re-localisation the mean online error is at most 5 m; no wrong convergence stays
