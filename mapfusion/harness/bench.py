@@ -316,11 +316,12 @@ def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (1
     from mapfusion import synthetic
     from mapfusion.config import FusionConfig, RoadTracking
 
-    d = Path(tempfile.mkdtemp(prefix="mapfusion-bench-"))
-    city = synthetic.write("city", d / "city.osm", width_km=city_km[0], height_km=city_km[1])
-    t0 = time.perf_counter()
-    road = RoadMap.from_osm(city, cache=False)
-    build_s = time.perf_counter() - t0
+    # (the city's OSM file is needed only for the build: it is not left behind in the temporary directory)
+    with tempfile.TemporaryDirectory(prefix="mapfusion-bench-") as d:
+        city = synthetic.write("city", Path(d) / "city.osm", width_km=city_km[0], height_km=city_km[1])
+        t0 = time.perf_counter()
+        road = RoadMap.from_osm(city, cache=False)
+        build_s = time.perf_counter() - t0
     yield {"benchmark": "roadmap_build", "map": f"synthetic city {city_km[0]:g} × {city_km[1]:g} km",
            "waypoints": len(road), "build_s": build_s}
     hmm_cfg = FusionConfig(road_tracking=RoadTracking.hmm)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import tempfile
 
 from mapfusion.harness.bench import run_benchmarks
 
@@ -13,8 +14,10 @@ def _median(xs):
     return xs[n // 2] if n % 2 else 0.5 * (xs[n // 2 - 1] + xs[n // 2])
 
 
-def test_bench_lines_carry_their_anchors_and_ratios():
+def test_bench_lines_carry_their_anchors_and_ratios(tmp_path, monkeypatch):
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     rows = {r["benchmark"]: r for r in run_benchmarks(duration_s=300.0, city_km=(2.0, 2.0), repeats=3)}
+    assert list(tmp_path.iterdir()) == []  # its synthetic city's files are not left behind
     assert set(rows) == {"roadmap_build", "engine", "engine_hmm", "matcher", "relocalise"}
     rel = rows["relocalise"]
     assert rel["particles"] > 0 and math.isclose(rel["realtime_factor"], rel["drive_s"] / rel["compute_s"])
