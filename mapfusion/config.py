@@ -986,6 +986,16 @@ class FusionConfig:
         unit="deg", min=0.0, max=180.0,
         source="issue 17: set60 Helsinki heavy rain s6 (37 m off before a 3 s gap: 17 -> 57 m when snapped)",
     )
+    outage_end_weight_m_per_deg: float = param(
+        1.0,
+        "With outage_step = road: of the drives along the graph, the end taken is the one nearest the guess by "
+        "D = E + w·A, this w (E: metres to the guess's position, A: degrees from the guess's heading, the last "
+        "heading turned by the odometry's own turn over the gap); 0: the nearest by position alone, which took a "
+        "drive that had just turned into a side street at a junction near the guess (position right, heading 90° "
+        "off, the estimate then driven across blocks).",
+        unit="m/deg", min=0.0, max=100.0,
+        source="paper III.B's w; issue 17 (kidnapped VO jumps: 8 of 60 carried steps 31–90° off the road's heading)",
+    )
     outage_step_fraction: float = param(
         0.3, "Translation σ of an outage step as a fraction of its length.", min=0.0, source="by measurement"
     )

@@ -132,6 +132,36 @@ def test_a_turn_at_a_junction_inside_the_gap_follows_the_odometrys_own_turn(tee)
     assert errs[True] < 15.0 and errs[False] > 60.0, errs
 
 
+def test_the_carried_step_ends_on_the_road_whose_heading_the_guess_has(tee):
+    """Straight east through the junction: the VO is out for 5.3 s from 50 m before it and resumes 3 m past it,
+    its own turn over the gap 13° (a re-initialisation's heading error). Of the drives along the graph, one
+    that turned north at the junction ends nearer the guess's position (3.9 m) than the one that went on
+    (6.0 m), its heading 90° off the guess's 13°. With ``outage_end_weight_m_per_deg`` (D = E + w·A) the step
+    ends on the road east and the estimate follows the vehicle (within 15 m 20 s later); by position alone
+    it takes the branch north and drives up it (over 100 m off)."""
+    road, (ox, oy) = tee
+    errs = {}
+    for weight in (1.0, 0.0):
+        eng = MapFusion(road, FusionConfig(outage_end_weight_m_per_deg=weight), odometry_rate_hz=10.0)
+        prev = None
+        for k in range(2204):
+            x, y, yaw = k - 2000.0, 0.0, 0.0
+            if k % 10 == 0 and k <= 1900:
+                lat, lon = road.projection.to_geo(x + ox, y + oy)
+                eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
+            if 1950 < k < 2003:
+                continue
+            pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x + ox, y + oy, 0.0))
+            rel = gtsam.Pose3() if prev is None else prev.between(pose)
+            if k == 2003:  # the re-initialised VO: the motion, turned by its heading error
+                rel = gtsam.Pose3(gtsam.Rot3.Yaw(math.radians(13.0)), rel.translation())
+            eng.add_odometry(0.1 * k, rel.matrix())
+            prev = pose
+        last = eng.online_estimates()[1][-1]
+        errs[weight] = math.hypot(last.x() - ox - 203.0, last.y() - oy)
+    assert errs[1.0] < 15.0 and errs[0.0] > 100.0, errs
+
+
 def _reinit_after(bend: tuple[RoadMap, np.ndarray], gap_s: float, cfg: FusionConfig) -> float:
     """10 m/s east on the straight, a fix every second for the first 100 s only; the VO out for ``gap_s`` from
     110 s and resuming with its constant-velocity guess turned 150° (a re-initialisation that carried a wrong

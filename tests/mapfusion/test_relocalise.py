@@ -726,3 +726,48 @@ def test_gps_that_left_the_estimate_on_the_roads_gets_no_second_opinion(road):
     assert biased._search.searches >= 1 and biased.counters.map_relocalisations >= 1 and err_biased < 15.0
     always, _ = _feed(road, dataclasses.replace(cfg, reloc_gps_fit_min=0.0), x, y, ox, oy, oyaw, 700)
     assert always._search.searches >= 1
+
+
+@pytest.fixture(scope="module")
+def tee_road(tmp_path_factory):
+    """A road east through a junction at the origin and a branch north from it (map frame: the junction's
+    position is returned with it)."""
+    from tests.helpers import write_osm
+
+    tags = {"highway": "primary", "lanes": "2"}
+    east, north = np.array([[-1000.0, 0.0], [0.0, 0.0], [1000.0, 0.0]]), np.array([[0.0, 0.0], [0.0, 1000.0]])
+    road = RoadMap.from_osm(write_osm(tmp_path_factory.mktemp("tee"), [(east, tags), (north, dict(tags))]))
+    west_end = road.xy_m[int(np.argmin(road.xy_m[:, 0]))]
+    return road, west_end + np.array([1000.0, 0.0])
+
+
+@settings(max_examples=30, deadline=None)
+@given(before_m=st.floats(20.0, 150.0), past_m=st.floats(1.0, 15.0), err_deg=st.floats(-20.0, 20.0),
+       seed=st.integers(0, 10_000))
+def test_the_followed_end_has_the_guess_heading_not_only_its_position(tee_road, before_m, past_m, err_deg, seed):
+    """Driving east ``before_m`` short of a junction with a branch north, ``before_m + past_m`` along the graph
+    towards a guess turned by a heading error of at most 20° (a constant turn: the guess's position is off the
+    road by up to 17 m to one side): the drives that went on end ``past_m`` past the junction heading east,
+    those that turned end as far up the branch, 90° off. By D = E + w·A (w = 1 m/deg) the end taken is on the
+    road east whatever the position's error favours (the heading term outweighs it by 50 m against √2 × 15 m);
+    by position alone the branch is taken whenever the guess lies on its side."""
+    road, (jx, jy) = tee_road
+    start_x = jx - before_m
+    m = road.match(start_x, jy, 0.0, 20.0, 1.0)
+    assert m is not None and not m.is_join
+    length = before_m + past_m
+    half = 0.5 * math.radians(err_deg)
+    chord = length * (math.sin(half) / half if abs(half) > 1e-9 else 1.0)
+    target = (start_x + chord * math.cos(half), jy + chord * math.sin(half))
+    p = RoadParticles(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=0.0), seed)
+    x, y, yaw = p.follow(m.edge, -1 if m.reversed else 1, m.along_m, length, target, 50.0,
+                         target_yaw_rad=2.0 * half, weight_m_per_deg=1.0)
+    assert abs(math.remainder(yaw, 2.0 * math.pi)) < math.radians(1.0)
+    assert math.hypot(x - (jx + past_m), y - jy) < 1.0
+    if err_deg > 10.0:  # the guess lies north of the road, nearer the branch's end: position alone turns
+        p = RoadParticles(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=0.0), seed)
+        _, _, yaw0 = p.follow(m.edge, -1 if m.reversed else 1, m.along_m, length, target, 50.0)
+        ends = {"east": (jx + past_m, jy), "north": (jx, jy + past_m)}
+        nearer = min(ends, key=lambda k: math.hypot(ends[k][0] - target[0], ends[k][1] - target[1]))
+        if nearer == "north":
+            assert abs(math.remainder(yaw0 - math.pi / 2, 2.0 * math.pi)) < math.radians(1.0)
