@@ -20,7 +20,7 @@ from .errors import EngineError
 from .gps_gate import GpsGate
 from .initialisation import Initialiser
 from .metrics import umeyama
-from .relocalise import Located, Region, RoadParticles, Search
+from .relocalise import Located, Region, RoadFollower, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
 from .track import Alignment, JumpGuard, Track, level, spread_back
@@ -55,7 +55,7 @@ class Reanchoring:
     def _init_reanchoring(self) -> None:
         self._search = Search(self.road, self.cfg)  # re-localisation on the road network (issue 17)
         self._road_steps: dict[int, gtsam.Pose3] = {}  # outages' steps along the road graph, by frame
-        self._follower: RoadParticles | None = None
+        self._follower: RoadFollower | None = None
         self.relocalised_at = []  # (time, distance searched) of each map re-localisation
         self._checked_fix_t = math.nan  # the last fix whose silence started a search
         self._map_anchor: tuple[int, Region] | None = None  # the last map re-anchoring: its frame, its search's region
@@ -133,8 +133,8 @@ class Reanchoring:
             return step
         if self._follower is None:
             # (it follows the road the estimate is on: turning back at a vertex is a search's hypothesis, not a guess)
-            self._follower = RoadParticles(self.road, dataclasses.replace(cfg, reloc_uturn_at_vertex=0.0),
-                                           cfg.reloc_seed)
+            self._follower = RoadFollower(self.road, dataclasses.replace(cfg, reloc_uturn_at_vertex=0.0),
+                                          cfg.reloc_seed)
         tr = step.translation()
         length_m = math.sqrt(tr.dot(tr))
         # which way at a junction: the guess turns by the odometry's own turn over the gap, as a constant turn

@@ -154,29 +154,6 @@ class RoadParticles:
         xy = self.positions(e, a)[0]
         return float(xy[0]), float(xy[1]), math.remainder(float(self._heading(e, a, d)[0]), 2.0 * math.pi)
 
-    def follow(self, edge: int, direction: int, along_m: float, distance_m: float, target_xy: tuple[float, float],
-               sigma_m: float, n: int = 32, target_yaw_rad: float | None = None,
-               weight_m_per_deg: float = 0.0) -> tuple[float, float, float]:
-        """Drive ``distance_m`` along the graph from (edge, direction, along): ``n`` drives, each taking at a
-        vertex an exit drawn in proportion to how near it leads to ``target_xy`` (see :meth:`_drive`); the
-        end nearest the target is the answer, as (x, y, heading of its road in its direction). With
-        ``target_yaw_rad``, nearest by D = E + w·A (metres from the target plus ``weight_m_per_deg`` × degrees
-        from its heading): a drive that has just turned into a side street can end nearer the target's position
-        than the one that went on, with its heading 90° off. The filter's own particles are replaced."""
-        self.edge = np.full(n, edge, dtype=np.int64)
-        self.direction = np.full(n, direction, dtype=np.int64)
-        self.along = np.full(n, float(along_m))
-        self.offset, self.logw, self.driven_m = np.zeros(n), np.full(n, -math.log(n)), 0.0
-        self.log_scale, self._log_range = np.zeros(n), (0.0, 0.0)
-        self._drive(np.full(n, float(distance_m)), np.tile(np.asarray(target_xy, dtype=float), (n, 1)), sigma_m)
-        xy = self.positions()
-        cost = np.hypot(xy[:, 0] - target_xy[0], xy[:, 1] - target_xy[1])
-        if target_yaw_rad is not None and weight_m_per_deg > 0:
-            off = np.abs(wrap_angle(self._heading(self.edge, self.along, self.direction) - target_yaw_rad))
-            cost = cost + weight_m_per_deg * np.degrees(off)
-        i = int(np.argmin(cost))
-        return self.road_pose(int(self.edge[i]), int(self.direction[i]), float(self.along[i]))
-
     # ---------------------------------------------------------------- geometry on the graph
     def positions(self, edge: np.ndarray | None = None, along: np.ndarray | None = None) -> np.ndarray:
         """(n, 2) map positions of (edge, along) pairs (the particles' own by default)."""
@@ -386,6 +363,33 @@ class RoadParticles:
         return Located(float(xy[k, 0]), float(xy[k, 1]), heading, off, int(self.edge[k]), int(self.direction[k]),
                        float(self.along[k]), mass, float(math.sqrt(np.sum(wi * d2))), yaw_spread, self.driven_m,
                        math.exp(ls_mean), ls_sd)
+
+
+class RoadFollower(RoadParticles):
+    """The outage step's road follower: a few drives along the graph from one place towards a guess."""
+
+    def follow(self, edge: int, direction: int, along_m: float, distance_m: float, target_xy: tuple[float, float],
+               sigma_m: float, n: int = 32, target_yaw_rad: float | None = None,
+               weight_m_per_deg: float = 0.0) -> tuple[float, float, float]:
+        """Drive ``distance_m`` along the graph from (edge, direction, along): ``n`` drives, each taking at a
+        vertex an exit drawn in proportion to how near it leads to ``target_xy`` (see :meth:`_drive`); the
+        end nearest the target is the answer, as (x, y, heading of its road in its direction). With
+        ``target_yaw_rad``, nearest by D = E + w·A (metres from the target plus ``weight_m_per_deg`` × degrees
+        from its heading): a drive that has just turned into a side street can end nearer the target's position
+        than the one that went on, with its heading 90° off. The filter's own particles are replaced."""
+        self.edge = np.full(n, edge, dtype=np.int64)
+        self.direction = np.full(n, direction, dtype=np.int64)
+        self.along = np.full(n, float(along_m))
+        self.offset, self.logw, self.driven_m = np.zeros(n), np.full(n, -math.log(n)), 0.0
+        self.log_scale, self._log_range = np.zeros(n), (0.0, 0.0)
+        self._drive(np.full(n, float(distance_m)), np.tile(np.asarray(target_xy, dtype=float), (n, 1)), sigma_m)
+        xy = self.positions()
+        cost = np.hypot(xy[:, 0] - target_xy[0], xy[:, 1] - target_xy[1])
+        if target_yaw_rad is not None and weight_m_per_deg > 0:
+            off = np.abs(wrap_angle(self._heading(self.edge, self.along, self.direction) - target_yaw_rad))
+            cost = cost + weight_m_per_deg * np.degrees(off)
+        i = int(np.argmin(cost))
+        return self.road_pose(int(self.edge[i]), int(self.direction[i]), float(self.along[i]))
 
 
 @dataclass(frozen=True)

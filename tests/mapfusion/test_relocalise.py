@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from mapfusion import FusionConfig, RoadMap
 from mapfusion.config import OutageStep
-from mapfusion.relocalise import Region, Relocaliser, RoadParticles, Search, _edge_travel
+from mapfusion.relocalise import Region, Relocaliser, RoadFollower, RoadParticles, Search, _edge_travel
 from mapfusion.roadmap import can_drive
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
@@ -759,13 +759,13 @@ def test_the_followed_end_has_the_guess_heading_not_only_its_position(tee_road, 
     half = 0.5 * math.radians(err_deg)
     chord = length * (math.sin(half) / half if abs(half) > 1e-9 else 1.0)
     target = (start_x + chord * math.cos(half), jy + chord * math.sin(half))
-    p = RoadParticles(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=0.0), seed)
+    p = RoadFollower(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=0.0), seed)
     x, y, yaw = p.follow(m.edge, -1 if m.reversed else 1, m.along_m, length, target, 50.0,
                          target_yaw_rad=2.0 * half, weight_m_per_deg=1.0)
     assert abs(math.remainder(yaw, 2.0 * math.pi)) < math.radians(1.0)
     assert math.hypot(x - (jx + past_m), y - jy) < 1.0
     if err_deg > 10.0:  # the guess lies north of the road, nearer the branch's end: position alone turns
-        p = RoadParticles(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=0.0), seed)
+        p = RoadFollower(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=0.0), seed)
         _, _, yaw0 = p.follow(m.edge, -1 if m.reversed else 1, m.along_m, length, target, 50.0)
         ends = {"east": (jx + past_m, jy), "north": (jx, jy + past_m)}
         nearer = min(ends, key=lambda k: math.hypot(ends[k][0] - target[0], ends[k][1] - target[1]))
