@@ -723,6 +723,13 @@ class FusionConfig:
                                     source="issue 17: as road_fix_rival_mass; kidnapped seeds 1-10 / held-out 11-20, "
                                     "0 / 0.02 / 0.05 / 0.1: ATE 53.8 / 53.2 / 53.2 / 53.2 and 70.9 / 56.2 / 56.2 / "
                                     "57.7 m, runs re-anchored wrong 4 / 3 / 3 / 3 and 8 / 5 / 5 / 6")
+    reloc_rival_outside_answer: bool = param(
+        True,
+        "reloc_rival_mass counts only the mass outside the answer's own disc (reloc_converge_radius_m around it): "
+        "counted in full, an answer 15–75 m from the estimate held the estimate's disc with its own cluster, so "
+        "such a correction was never made (false: counted in full).",
+        source="issue 17 (kidnapped VO jumps: steps carried across the gap 15–60 m along the road stayed so)",
+    )
     reloc_give_up_m: float = param(1500.0, "A search not converged after this much driving starts again around the "
                                    "estimate with twice the radius.", unit="m", min=10.0, max=1000000.0,
                                    source="issue 17")
@@ -742,6 +749,16 @@ class FusionConfig:
                                        "reloc_gap_margin_m + this × the gap, and the opened GPS gate's σ at least "
                                        "this × the gap.",
                                        unit="m/s", min=0.0, max=100.0, source="issue 17: city speeds")
+    reloc_gap_guess_floor: float = param(
+        0.05,
+        "The search begun after an odometry gap starts from the engine's own guess (the step carried along the "
+        "road, outage_step): its particles weighted floor + (1 − floor) × a Gaussian around that pose (σ of the "
+        "carried step: reloc_sigma_m + outage_step_fraction × its length, and outage_rot_sigma_deg), so that "
+        "places the guess rules out keep this share of the weight; 1: uniform over the region.",
+        min=0.0, max=1.0,
+        source="issue 17 (kidnapped VO jumps: carried steps 2–50 m off in most runs, while a uniform search took "
+               "600–1,000 m of Kotka's long roads to converge)",
+    )
     reloc_kld_epsilon: float = param(0.0, "Adaptive particle count (KLD-sampling, Fox 2003): at each resampling as "
                                      "many particles as bound the posterior's error by this (Kullback-Leibler "
                                      "divergence, 99% confidence) over the bins it occupies, at most the count the "
@@ -995,6 +1012,15 @@ class FusionConfig:
         "off, the estimate then driven across blocks).",
         unit="m/deg", min=0.0, max=100.0,
         source="paper III.B's w; issue 17 (kidnapped VO jumps: 8 of 60 carried steps 31–90° off the road's heading)",
+    )
+    outage_end_max_deg: float = param(
+        45.0,
+        "The heading difference A in outage_end_weight_m_per_deg's D is counted up to this: ends further off the "
+        "guess's heading than this are told apart by their position alone (the odometry's turn over a gap says "
+        "roughly which way, not which of two roads both far off it).",
+        unit="deg", min=0.0, max=180.0,
+        source="issue 17: heavy-rain Kotka s2 (a 65° turn inside a 2 s gap the VO saw as 4°: uncapped, the end "
+               "165° off the truth won over the one 32° off by 4 m of D)",
     )
     outage_step_fraction: float = param(
         0.3, "Translation σ of an outage step as a fraction of its length.", min=0.0, source="by measurement"

@@ -154,7 +154,8 @@ class Reanchoring:
         x, y, yaw = self._follower.follow(*place, length_m, (guess.x(), guess.y()),
                                           cfg.reloc_sigma_m + cfg.outage_step_fraction * length_m,
                                           target_yaw_rad=start.rotation().yaw() + 2.0 * half,
-                                          weight_m_per_deg=cfg.outage_end_weight_m_per_deg)
+                                          weight_m_per_deg=cfg.outage_end_weight_m_per_deg,
+                                          max_deg=cfg.outage_end_max_deg)
         road_step = start.between(gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x, y, start.z())))
         self._road_steps[k] = road_step
         log.info("t=%.1f s: the odometry resumed after %.1f s: carried %.0f m along the road", t[k], t[k] - t[k - 1],

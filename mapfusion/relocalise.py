@@ -64,6 +64,20 @@ class Region:
 
 
 @dataclass(frozen=True)
+class Guess:
+    """The engine's own guess of the pose as a search begins (after an odometry gap: the step carried along the
+    road): a soft prior on the search's first particles, ``floor`` + (1 − floor) × a Gaussian in position (σ m)
+    and heading (σ rad), so that places the guess rules out keep ``floor`` of its weight."""
+
+    x_m: float
+    y_m: float
+    sigma_m: float
+    yaw_rad: float
+    yaw_sigma_rad: float
+    floor: float
+
+
+@dataclass(frozen=True)
 class Located:
     """A converged posterior: the pose of its main cluster and how sure it is."""
 
@@ -116,10 +130,10 @@ class RoadParticles:
         return self._log_range[1] > self._log_range[0]
 
     def start(self, region: Region, odometry_yaw_rad: float, n: int | None = None,
-              scale_range: tuple[float, float] = (1.0, 1.0)) -> int:
+              scale_range: tuple[float, float] = (1.0, 1.0), guess: Guess | None = None) -> int:
         """Spread ``n`` particles (``reloc_particles``) uniformly over the road length inside the region,
         in each legal direction, heading along their roads, their scales log-uniform over ``scale_range``;
-        returns how many way-points lay inside."""
+        weighted by ``guess`` when one is given (else equal weights); returns how many way-points lay inside."""
         road = self.road
         near = road.query_radius(region.x_m, region.y_m, region.radius_m)
         near = near[near < self._n_pts]
@@ -146,6 +160,8 @@ class RoadParticles:
         self.driven_m = 0.0
         self._xy = None
         self._n_max = n
+        if guess is not None:
+            self.logw = guess_log_weights(guess, self.positions(), yaw)
         return int(near.size)
 
     def road_pose(self, edge: int, direction: int, along_m: float) -> tuple[float, float, float]:
@@ -317,12 +333,16 @@ class RoadParticles:
         key = key * 2048 + np.floor(self.log_scale[idx] / (0.01 * b)).astype(np.int64)
         return int(np.unique(key).size)
 
-    def mass_within(self, x_m: float, y_m: float, radius_m: float) -> float:
-        """The posterior mass within ``radius_m`` of (x, y) (0 with no particles)."""
+    def mass_within(self, x_m: float, y_m: float, radius_m: float,
+                    outside: tuple[float, float, float] | None = None) -> float:
+        """The posterior mass within ``radius_m`` of (x, y) (0 with no particles); with ``outside`` (x, y,
+        radius), only the mass that is not also within that disc."""
         if len(self) == 0:
             return 0.0
         xy = self.positions()
         near = np.hypot(xy[:, 0] - x_m, xy[:, 1] - y_m) <= radius_m
+        if outside is not None:
+            near &= np.hypot(xy[:, 0] - outside[0], xy[:, 1] - outside[1]) > outside[2]
         return float(np.exp(self.logw[near]).sum())
 
     def located(self, odometry_yaw_rad: float) -> Located | None:
@@ -370,13 +390,14 @@ class RoadFollower(RoadParticles):
 
     def follow(self, edge: int, direction: int, along_m: float, distance_m: float, target_xy: tuple[float, float],
                sigma_m: float, n: int = 32, target_yaw_rad: float | None = None,
-               weight_m_per_deg: float = 0.0) -> tuple[float, float, float]:
+               weight_m_per_deg: float = 0.0, max_deg: float = 180.0) -> tuple[float, float, float]:
         """Drive ``distance_m`` along the graph from (edge, direction, along): ``n`` drives, each taking at a
         vertex an exit drawn in proportion to how near it leads to ``target_xy`` (see :meth:`_drive`); the
         end nearest the target is the answer, as (x, y, heading of its road in its direction). With
         ``target_yaw_rad``, nearest by D = E + w·A (metres from the target plus ``weight_m_per_deg`` × degrees
-        from its heading): a drive that has just turned into a side street can end nearer the target's position
-        than the one that went on, with its heading 90° off. The filter's own particles are replaced."""
+        from its heading, counted up to ``max_deg``): a drive that has just turned into a side street can end
+        nearer the target's position than the one that went on, with its heading 90° off. The filter's own
+        particles are replaced."""
         self.edge = np.full(n, edge, dtype=np.int64)
         self.direction = np.full(n, direction, dtype=np.int64)
         self.along = np.full(n, float(along_m))
@@ -387,9 +408,21 @@ class RoadFollower(RoadParticles):
         cost = np.hypot(xy[:, 0] - target_xy[0], xy[:, 1] - target_xy[1])
         if target_yaw_rad is not None and weight_m_per_deg > 0:
             off = np.abs(wrap_angle(self._heading(self.edge, self.along, self.direction) - target_yaw_rad))
-            cost = cost + weight_m_per_deg * np.degrees(off)
+            cost = cost + weight_m_per_deg * np.minimum(np.degrees(off), max_deg)
         i = int(np.argmin(cost))
         return self.road_pose(int(self.edge[i]), int(self.direction[i]), float(self.along[i]))
+
+
+def guess_log_weights(guess: Guess, xy_m: np.ndarray, heading_rad: np.ndarray) -> np.ndarray:
+    """Normalised log-weights of particles at ``xy_m`` (n × 2, m) heading ``heading_rad`` (their roads' headings
+    in their directions) under ``guess``: log(floor + (1 − floor) × exp(−½ (d²/σ² + a²/σ_yaw²))), normalised."""
+    d2 = ((xy_m[:, 0] - guess.x_m) ** 2 + (xy_m[:, 1] - guess.y_m) ** 2) / (guess.sigma_m * guess.sigma_m)
+    a2 = (wrap_angle(heading_rad - guess.yaw_rad) / guess.yaw_sigma_rad) ** 2
+    with np.errstate(divide="ignore"):  # (a floor of 0 or 1: one of the two terms is log 0)
+        logw = np.logaddexp(math.log(guess.floor) if guess.floor > 0 else -np.inf,
+                            (math.log1p(-guess.floor) if guess.floor < 1 else -np.inf) - 0.5 * (d2 + a2))
+    top = float(logw.max())  # (in logs: with no floor, a guess far from every particle would underflow)
+    return logw - (top + math.log(float(np.exp(logw - top).sum())))
 
 
 @dataclass(frozen=True)
@@ -498,9 +531,10 @@ class Relocaliser:
     frame, metres after the odometry's scale) and says where the vehicle is once it has converged."""
 
     def __init__(self, road: RoadMap, cfg: FusionConfig, region: Region, seed: int | list[int] = 0,
-                 scale_range: tuple[float, float] = (1.0, 1.0)) -> None:
+                 scale_range: tuple[float, float] = (1.0, 1.0), guess: Guess | None = None) -> None:
         self.particles = RoadParticles(road, cfg, seed)
         self.region = region
+        self.guess = guess
         self.scale_range = scale_range
         self.cfg = cfg
         self._anchor: tuple[float, float] | None = None  # odometry position at the last filter step
@@ -519,7 +553,8 @@ class Relocaliser:
         if self._anchor is None:
             self._anchor = self._last = (x, y)
             self.k0 = frame
-            self.way_points_in_region = self.particles.start(self.region, yaw, scale_range=self.scale_range)
+            self.way_points_in_region = self.particles.start(self.region, yaw, scale_range=self.scale_range,
+                                                             guess=self.guess)
             log.info("re-localising in a %.0f m region around (%.0f, %.0f): %d particles on %d way-points",
                      self.region.radius_m, self.region.x_m, self.region.y_m, len(self.particles),
                      self.way_points_in_region)
@@ -558,13 +593,14 @@ class Search:
         self.watching: Relocaliser | None = None  # a search that re-anchored, still fed (reloc_watch_m)
         self._watch_until_m = 0.0
 
-    def begin(self, region: Region, scale_range: tuple[float, float] = (1.0, 1.0), frame: int | None = None) -> None:
+    def begin(self, region: Region, scale_range: tuple[float, float] = (1.0, 1.0), frame: int | None = None,
+              guess: Guess | None = None) -> None:
         """Start a search in ``region`` (a new one replaces any running, and ends any watched); its particles'
-        scales spread over ``scale_range`` (map metres per odometry unit). ``frame``: the engine's frame it begins
-        at, which seeds it (with ``reloc_seed``), so that a search's draws do not depend on how many searches came
-        before it (without: the count of searches so far does)."""
+        scales spread over ``scale_range`` (map metres per odometry unit), their first weights from ``guess``
+        if given. ``frame``: the engine's frame it begins at, which seeds it (with ``reloc_seed``), so that a
+        search's draws do not depend on how many searches came before it (without: the count so far does)."""
         seed: int | list[int] = self.cfg.reloc_seed + self.searches if frame is None else [self.cfg.reloc_seed, frame]
-        self.active = Relocaliser(self.road, self.cfg, region, seed, scale_range)
+        self.active = Relocaliser(self.road, self.cfg, region, seed, scale_range, guess)
         self.watching = None
         self.searches += 1
 

@@ -16,7 +16,7 @@ from . import factors
 from .config import OutageStep, StateModel
 from .geometry import cumulative_length
 from .reanchoring import Reanchoring
-from .relocalise import Located, Region, Relocaliser, enclosing_disc
+from .relocalise import Guess, Located, Region, Relocaliser, enclosing_disc
 from .track import planar_of
 
 log = logging.getLogger(__name__)
@@ -47,7 +47,8 @@ class MapSearching(Reanchoring):
             reach = gap_s * self.cfg.reloc_gap_speed_mps
             if self.cfg.outage_step is not OutageStep.odometry:
                 reach = max(reach, math.hypot(pred.x() - prev.x(), pred.y() - prev.y()))
-            search.begin(Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + reach), frame=k)
+            search.begin(Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + reach), frame=k,
+                         guess=self._gap_guess(prev, pred))
             return
         if assoc.became_lost:
             assoc.became_lost = False
@@ -67,6 +68,19 @@ class MapSearching(Reanchoring):
                 or self._rival_at_estimate(k, pred, loc, active):
             return
         self._map_reanchor(k, pred, loc, active)
+
+    def _gap_guess(self, prev: gtsam.Pose3, pred: gtsam.Pose3) -> Guess | None:
+        """The engine's own guess across an odometry gap (the step carried along the road from ``prev`` to
+        ``pred``) as the gap's search's prior (``reloc_gap_guess_floor``; none at 1): σ as the carried step's
+        (``reloc_sigma_m`` + ``outage_step_fraction`` of its length) and ``outage_rot_sigma_deg``. Uniform over
+        the region, a search on long straight roads holds the right place with every other stretch of road in
+        the region for hundreds of metres, while the estimate it should correct strays at the next junction."""
+        cfg = self.cfg
+        if cfg.reloc_gap_guess_floor >= 1.0:
+            return None
+        length_m = math.hypot(pred.x() - prev.x(), pred.y() - prev.y())
+        return Guess(pred.x(), pred.y(), cfg.reloc_sigma_m + cfg.outage_step_fraction * length_m,
+                     pred.rotation().yaw(), math.radians(cfg.outage_rot_sigma_deg), cfg.reloc_gap_guess_floor)
 
     def _gps_left_it_off_the_roads(self, k: int) -> bool:
         """GPS has fallen silent: does where it left the estimate need a second opinion? Only when less than
@@ -159,12 +173,16 @@ class MapSearching(Reanchoring):
 
     def _rival_at_estimate(self, k: int, pred: gtsam.Pose3, loc: Located, search: Relocaliser) -> bool:
         """True (and logged) when ``search``, whose answer ``loc`` is away from the estimate, still holds at least
-        ``reloc_rival_mass`` of its posterior within 2 × ``reloc_converge_radius_m`` of the estimate: it has not
-        ruled the estimate's place out, only preferred another, and a good estimate is not moved on that."""
+        ``reloc_rival_mass`` of its posterior within 2 × ``reloc_converge_radius_m`` of the estimate (and, with
+        ``reloc_rival_outside_answer``, outside the answer's own disc: an answer near the estimate is not its own
+        rival): it has not ruled the estimate's place out, only preferred another, and a good estimate is not
+        moved on that."""
         cfg = self.cfg
         if cfg.reloc_rival_mass <= 0:
             return False
-        mass = search.particles.mass_within(pred.x(), pred.y(), 2.0 * cfg.reloc_converge_radius_m)
+        r = cfg.reloc_converge_radius_m
+        mass = search.particles.mass_within(pred.x(), pred.y(), 2.0 * r,
+                                            (loc.x_m, loc.y_m, r) if cfg.reloc_rival_outside_answer else None)
         if mass < cfg.reloc_rival_mass:
             return False
         log.info("t=%.1f s: the search prefers a place %.0f m away but still holds %.0f%% of its posterior at the "

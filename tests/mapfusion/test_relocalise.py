@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from mapfusion import FusionConfig, RoadMap
 from mapfusion.config import OutageStep
-from mapfusion.relocalise import Region, Relocaliser, RoadFollower, RoadParticles, Search, _edge_travel
+from mapfusion.relocalise import Guess, Region, Relocaliser, RoadFollower, RoadParticles, Search, _edge_travel
 from mapfusion.roadmap import can_drive
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
@@ -106,6 +106,13 @@ def test_the_mass_within_a_disc_grows_with_it_from_none_to_all(road, seed, steps
     lo, hi = sorted((r1, r2))
     assert 0.0 <= p.mass_within(cx, cy, lo) <= p.mass_within(cx, cy, hi) + 1e-12
     assert math.isclose(p.mass_within(cx, cy, 1e7), 1.0, rel_tol=1e-9)
+    # outside a second disc (the rival's mass beside an answer): what lies in the first and not the second
+    ox, oy = x0 - dy, y0 + dx
+    xy, w = p.positions(), np.exp(p.logw)
+    first, second = np.hypot(*(xy - [cx, cy]).T) <= hi, np.hypot(*(xy - [ox, oy]).T) <= lo
+    assert math.isclose(p.mass_within(cx, cy, hi, (ox, oy, lo)), float(w[first & ~second].sum()), abs_tol=1e-12)
+    assert p.mass_within(cx, cy, hi, (ox, oy, lo)) <= p.mass_within(cx, cy, hi) + 1e-12
+    assert p.mass_within(cx, cy, hi, (cx, cy, hi)) == 0.0  # (a disc outside itself holds nothing)
 
 
 def _relocalise(road, seed, length_m, offset_m=300.0, radius_m=1000.0):
@@ -676,6 +683,27 @@ def test_a_search_that_still_holds_mass_at_the_estimate_does_not_move_it(road):
         assert eng._rival_at_estimate(0, pred, answer, r) is expected
 
 
+def test_an_answer_near_the_estimate_is_not_its_own_rival(road):
+    """reloc_rival_outside_answer: a search whose whole posterior sits in one tight cluster 30 m from the
+    estimate has ruled the estimate's place out; counted in full, the cluster's own mass inside the estimate's
+    50 m disc made it its own rival and the 30 m correction was never made."""
+    import gtsam
+
+    from mapfusion import MapFusion
+    from mapfusion.relocalise import Located
+
+    x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
+    r = Relocaliser(road, CFG, Region(x0, y0, 5.0))
+    r.add(0.0, 0.0, 0.0)  # (every particle within 5 m of (x0, y0): the answer's cluster)
+    assert r.particles.mass_within(x0, y0, 5.0) > 0.999
+    answer = Located(x0, y0, 0.0, 0.0, 0, 1, 0.0, 1.0, 2.0, 0.01, 150.0)
+    pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0 + 30.0, y0, 0.0))
+    for outside, expected in ((True, False), (False, True)):
+        eng = MapFusion(road, dataclasses.replace(CFG, reloc_rival_outside_answer=outside), odometry_rate_hz=10.0)
+        eng.add_odometry(0.0, np.eye(4))
+        assert eng._rival_at_estimate(0, pred, answer, r) is expected
+
+
 @settings(max_examples=60, deadline=None)
 @given(frames=st.lists(st.tuples(st.floats(0.0, 40.0), st.booleans()), min_size=1, max_size=120),
        window_m=st.floats(1.0, 300.0))
@@ -742,15 +770,15 @@ def tee_road(tmp_path_factory):
 
 
 @settings(max_examples=30, deadline=None)
-@given(before_m=st.floats(20.0, 150.0), past_m=st.floats(1.0, 15.0), err_deg=st.floats(-20.0, 20.0),
+@given(before_m=st.floats(20.0, 150.0), past_m=st.floats(1.0, 12.0), err_deg=st.floats(-20.0, 20.0),
        seed=st.integers(0, 10_000))
 def test_the_followed_end_has_the_guess_heading_not_only_its_position(tee_road, before_m, past_m, err_deg, seed):
     """Driving east ``before_m`` short of a junction with a branch north, ``before_m + past_m`` along the graph
     towards a guess turned by a heading error of at most 20° (a constant turn: the guess's position is off the
     road by up to 17 m to one side): the drives that went on end ``past_m`` past the junction heading east,
-    those that turned end as far up the branch, 90° off. By D = E + w·A (w = 1 m/deg) the end taken is on the
-    road east whatever the position's error favours (the heading term outweighs it by 50 m against √2 × 15 m);
-    by position alone the branch is taken whenever the guess lies on its side."""
+    those that turned end as far up the branch, 90° off. By D = E + w·A (w = 1 m/deg, A counted up to 45°) the
+    end taken is on the road east whatever the position's error favours (the heading term outweighs it by at
+    least 25 m against √2 × 12 m); by position alone the branch is taken whenever the guess lies on its side."""
     road, (jx, jy) = tee_road
     start_x = jx - before_m
     m = road.match(start_x, jy, 0.0, 20.0, 1.0)
@@ -761,7 +789,7 @@ def test_the_followed_end_has_the_guess_heading_not_only_its_position(tee_road, 
     target = (start_x + chord * math.cos(half), jy + chord * math.sin(half))
     p = RoadFollower(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=0.0), seed)
     x, y, yaw = p.follow(m.edge, -1 if m.reversed else 1, m.along_m, length, target, 50.0,
-                         target_yaw_rad=2.0 * half, weight_m_per_deg=1.0)
+                         target_yaw_rad=2.0 * half, weight_m_per_deg=1.0, max_deg=45.0)
     assert abs(math.remainder(yaw, 2.0 * math.pi)) < math.radians(1.0)
     assert math.hypot(x - (jx + past_m), y - jy) < 1.0
     if err_deg > 10.0:  # the guess lies north of the road, nearer the branch's end: position alone turns
@@ -771,3 +799,89 @@ def test_the_followed_end_has_the_guess_heading_not_only_its_position(tee_road, 
         nearer = min(ends, key=lambda k: math.hypot(ends[k][0] - target[0], ends[k][1] - target[1]))
         if nearer == "north":
             assert abs(math.remainder(yaw0 - math.pi / 2, 2.0 * math.pi)) < math.radians(1.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ends_both_far_off_the_guess_heading_are_told_apart_by_position(tee_road, seed):
+    """A guess whose heading points where no road goes (100° right of east, the VO's turn over the gap wrong):
+    both ends are far off it, and with A counted up to 45° the end nearer the guess's position is taken (the
+    branch north); counted in full, the 70° between the two ends' A would take the road east, 7 m further off."""
+    road, (jx, jy) = tee_road
+    m = road.match(jx - 50.0, jy, 0.0, 20.0, 1.0)
+    assert m is not None
+    target, yaw_guess = (jx - 2.0, jy + 8.0), math.radians(-100.0)
+    ends = {}
+    for cap in (45.0, 180.0):
+        p = RoadFollower(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=0.0), seed)
+        ends[cap] = p.follow(m.edge, -1 if m.reversed else 1, m.along_m, 55.0, target, 50.0,
+                             target_yaw_rad=yaw_guess, weight_m_per_deg=1.0, max_deg=cap)
+    assert abs(math.remainder(ends[45.0][2] - math.pi / 2, 2.0 * math.pi)) < math.radians(1.0)  # north
+    assert abs(math.remainder(ends[180.0][2], 2.0 * math.pi)) < math.radians(1.0)  # east
+
+
+@pytest.fixture(scope="module")
+def twin_ells(tmp_path_factory):
+    """Two copies of one L-shaped road (500 m east, then a left turn and 300 m north), the second moved
+    1,000 m west and 200 m south: a drive along either fits the other as well. Returns the map and the
+    offset of the test's frame (the first L's corner at (500, 0)) in the map's ENU frame."""
+    from tests.helpers import write_osm
+
+    ell = np.array([[0.0, 0.0], [500.0, 0.0], [500.0, 300.0]])
+    tags = {"highway": "secondary", "lanes": "2"}
+    road = RoadMap.from_osm(write_osm(tmp_path_factory.mktemp("ells"),
+                                      [(ell, tags), (ell + np.array([-1000.0, -200.0]), dict(tags))]))
+    i = int(np.argmax(road.xy_m[:, 0] - road.xy_m[:, 1]))  # the first L's corner: east-most, south-most
+    return road, road.xy_m[i] - np.array([500.0, 0.0])
+
+
+def _ell_search(twin_ells, guess_floor: float | None, seed: int):
+    """A search over both L's from 100 m along the first, fed that L's drive (400 m east, 200 m north, in the
+    odometry's own frame: a start heading of 30°); with ``guess_floor``, weighted by a guess 20 m behind the
+    true start (σ 60 m, 20°). Returns the converged answer's distance from the truth (m) or None."""
+    road, (ox, oy) = twin_ells
+    guess = None if guess_floor is None else \
+        Guess(ox + 80.0, oy, 60.0, 0.0, math.radians(20.0), guess_floor)
+    reloc = Relocaliser(road, CFG, Region(ox - 250.0, oy - 100.0, 800.0), seed, guess=guess)
+    c, s = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
+    path = [(100.0 + d, 0.0, 0.0) for d in range(0, 400)] + [(500.0, float(d), math.pi / 2) for d in range(0, 201)]
+    for x, y, yaw in path:
+        loc = reloc.add(c * x - s * y, s * x + c * y, yaw + math.radians(30.0))
+        if loc is not None:
+            return math.hypot(loc.x_m - ox - x, loc.y_m - oy - y)
+    return None
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_gaps_guess_tells_apart_places_the_roads_shape_cannot(twin_ells, seed):
+    """Uniform over the region, the drive fits both L's alike and the search never holds 80% in one place; the
+    engine's guess (its step carried across a gap, 20 m off) makes the right L the answer, within 10 m of the
+    truth; a guess that keeps every place's weight (floor 1) is the uniform search again."""
+    assert _ell_search(twin_ells, None, seed) is None
+    assert _ell_search(twin_ells, 1.0, seed) is None
+    err = _ell_search(twin_ells, 0.05, seed)
+    assert err is not None and err < 10.0, err
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), floor=st.floats(0.0, 1.0), sigma_m=st.floats(5.0, 300.0),
+       yaw_deg=st.floats(-180.0, 180.0), dx=st.floats(-300.0, 300.0), dy=st.floats(-300.0, 300.0))
+def test_a_guess_weighs_the_first_particles_within_its_floor(road, seed, floor, sigma_m, yaw_deg, dx, dy):
+    """The first weights are finite and sum to one; none falls below ``floor`` of the largest; nearer the guess
+    (at the same heading difference) never weighs less; floor 1 leaves them equal."""
+    cx, cy = road.xy_m[len(road) // 2]
+    p = RoadParticles(road, CFG, seed)
+    guess = Guess(cx + dx, cy + dy, sigma_m, math.radians(yaw_deg), math.radians(20.0), floor)
+    p.start(Region(cx, cy, 400.0), 0.0, n=3000, guess=guess)
+    assert np.isfinite(p.logw).all()  # (no floor and a guess far from every particle: no underflow to 0/0)
+    w = np.exp(p.logw)
+    assert math.isclose(w.sum(), 1.0, rel_tol=1e-9)
+    assert w.min() >= floor * w.max() * (1.0 - 1e-9)
+    xy = p.positions()
+    d = np.hypot(xy[:, 0] - guess.x_m, xy[:, 1] - guess.y_m)
+    heading = p._heading(p.edge, p.along, p.direction)
+    a = np.abs(np.remainder(heading - guess.yaw_rad + math.pi, 2 * math.pi) - math.pi)
+    same = np.abs(a - a[0]) < 1e-12  # (the particles at the first one's heading difference)
+    order = np.argsort(d[same])
+    assert np.all(np.diff(w[same][order]) <= 1e-15)
+    if floor == 1.0:
+        assert np.allclose(w, 1.0 / len(w))
