@@ -81,10 +81,11 @@ def test_rain_reduces_mean_ate_by_40_percent(request):
 
 
 @family("heavy-rain")
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-25 (reloc_gap_s 2 s): mean ATE reduced by 39%, 8.17 → "
-                   "4.95 m (heavy-rain drives with GPS every 5 s; Kotka seed 2, de-localised with and without the map "
-                   "before, is 15.2 → 4.7 m now that its VO's 2.3 s re-initialisation is a lost track; Helsinki seed "
-                   "2 4.28 → 5.05 m); 2026-11-24: 10%, 11.98 → 10.79 m; needs ≥ 40%")
+@pytest.mark.xfail(strict=False, reason="on the edge of the target, and which side depends on the machine: "
+                   "39.4%, 8.17 → 4.95 m, recorded on session 24's machine (eb8b165); 40.7%, 8.35 → 4.95 m, on "
+                   "session 26's (AMD EPYC), Map-Fusion's six ATEs within 0.02 m of the record but the simulated Kotka "
+                   "s3 drive's odometry ATE 13.45 → 14.51 m (the simulation's floating point differs across CPUs); "
+                   "2026-11-24: 10%, 11.98 → 10.79 m; needs ≥ 40%")
 def test_heavy_rain_reduces_mean_ate_by_40_percent(request):
     assert _reduction(_ok(request, "heavy-rain")) >= 0.40
 
@@ -162,12 +163,12 @@ def _kidnapped(request):
 
 
 @family("kidnapped")
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-25 (session 24: searches seeded by their frame, "
-                   "reloc_gps_fit_min, reloc_gps_replay_m 500 m): this family 6 of 8 within 500 m (VO jump Helsinki s1 "
-                   "is not knocked off — the engine carries the last velocity along the road over the VO's gap —; VO "
-                   "jump Helsinki s2 581 m, VO jump Kotka s2 3,182 m); over seeds 1–30 85 of 120, see docs/method.md — "
-                   "the search needs turns to converge, and a region of 200–400 m still holds look-alike paths; needs "
-                   "90%")
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-25 (session 26: the gap's search from the engine's guess, "
+                   "an answer not its own rival, the outage step's heading term capped): this family 7 of 8 within "
+                   "500 m (VO jump Helsinki s1 is not knocked off — the engine carries the last velocity along the road "
+                   "over the VO's gap —; VO jump Helsinki s2 576 m; VO jump Kotka s2 3,182 → 170 m); over seeds 1–30 "
+                   "94 of 120, see docs/method.md — the search needs turns to converge, and a region of 200–400 m "
+                   "still holds look-alike paths; needs 90%")
 def test_kidnapped_runs_are_relocalised_within_500_m(request):
     """Issue 17: after the kidnap (a biased fix window, or a VO that re-initialises 30–300 m off) and with no
     GPS after it, at least 90% of the runs are found again by the map within 500 m of driving."""
@@ -177,10 +178,10 @@ def test_kidnapped_runs_are_relocalised_within_500_m(request):
 
 
 @family("kidnapped")
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-25 (session 24): mean online error after re-localisation "
-                   "6.7 m over this family (5.1–8.1 m a run: the engine tracks after the search as after a GPS "
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-25 (session 26): mean online error after re-localisation "
+                   "6.9 m over this family (6.2–8.0 m a run: the engine tracks after the search as after a GPS "
                    "initialisation, its along-road error 5–12 m between junctions); no run here re-anchored wrong; "
-                   "over seeds 1–30 9 of 120 runs wrong, the longest 1,701 m (a wrong convergence the watch does not "
+                   "over seeds 1–30 7 of 120 runs wrong, the longest 1,238 m (a wrong convergence the watch does not "
                    "see is undone only by the next lost event)")
 def test_kidnapped_runs_are_within_5_m_after_relocalisation_and_never_stay_wrong(request):
     """Issue 17: after re-localisation the mean online error is at most 5 m; no wrong convergence stays
