@@ -104,31 +104,42 @@ def _turn_at(s_m: float) -> tuple[float, float, float]:
     return (s_m - 2000.0, 0.0, 0.0) if s_m <= 2000.0 else (0.0, s_m - 2000.0, math.pi / 2.0)
 
 
+def _last_on_the_tee(tee, cfg: FusionConfig, pose_at, gap: tuple[int, int], resumed, frames: int | None = None):
+    """A drive on the tee at 10 m/s, 1 m a frame (``pose_at``: arc length → (x, y, yaw) from the junction's
+    approach), a fix every second up to frame 1900, the VO silent over the frames strictly inside ``gap`` and its
+    step on resuming at ``gap[1]`` passed through ``resumed``; ``frames`` (default: up to the resumption) in
+    all. Returns the last online estimate's (x, y) in the tee's own frame."""
+    road, (ox, oy) = tee
+    eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
+    prev = None
+    for k in range(gap[1] + 1 if frames is None else frames):
+        x, y, yaw = pose_at(1.0 * k)
+        if k % 10 == 0 and k <= 1900:
+            lat, lon = road.projection.to_geo(x + ox, y + oy)
+            eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
+        if gap[0] < k < gap[1]:
+            continue
+        pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x + ox, y + oy, 0.0))
+        rel = gtsam.Pose3() if prev is None else prev.between(pose)
+        if k == gap[1]:
+            rel = resumed(rel)
+        eng.add_odometry(0.1 * k, rel.matrix())
+        prev = pose
+    last = eng.online_estimates()[1][-1]
+    return last.x() - ox, last.y() - oy
+
+
 def test_a_turn_at_a_junction_inside_the_gap_follows_the_odometrys_own_turn(tee):
     """The VO is out for 10 s from 40 m before the junction, in which the vehicle turns left; it resumes
     reporting the turn (90°) but 150 m too far. With ``outage_turn`` the engine carries the last velocity along
     the road into the branch the odometry's turn points to: within 15 m; straight on, it takes the road east
     (about 85 m off)."""
-    road, (ox, oy) = tee
     errs = {}
     for turn in (True, False):
-        eng = MapFusion(road, FusionConfig(outage_turn=turn), odometry_rate_hz=10.0)
-        prev = None
-        for k in range(2061):
-            x, y, yaw = _turn_at(1.0 * k)
-            if k % 10 == 0 and k <= 1900:
-                lat, lon = road.projection.to_geo(x + ox, y + oy)
-                eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
-            if 1960 < k < 2060:
-                continue
-            pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x + ox, y + oy, 0.0))
-            rel = gtsam.Pose3() if prev is None else prev.between(pose)
-            if k == 2060:  # the VO's own guess: the turn, but 150 m too far on
-                rel = rel.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(150.0, 0.0, 0.0)))
-            eng.add_odometry(0.1 * k, rel.matrix())
-            prev = pose
-        last = eng.online_estimates()[1][-1]
-        errs[turn] = math.hypot(last.x() - ox, last.y() - oy - 60.0)
+        # the VO's own guess on resuming: the turn, but 150 m too far on
+        x, y = _last_on_the_tee(tee, FusionConfig(outage_turn=turn), _turn_at, (1960, 2060),
+                                lambda rel: rel.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(150.0, 0.0, 0.0))))
+        errs[turn] = math.hypot(x, y - 60.0)
     assert errs[True] < 15.0 and errs[False] > 60.0, errs
 
 
@@ -139,26 +150,14 @@ def test_the_carried_step_ends_on_the_road_whose_heading_the_guess_has(tee):
     (6.0 m), its heading 90° off the guess's 13°. With ``outage_end_weight_m_per_deg`` (D = E + w·A) the step
     ends on the road east and the estimate follows the vehicle (within 15 m 20 s later); by position alone
     it takes the branch north and drives up it (over 100 m off)."""
-    road, (ox, oy) = tee
     errs = {}
     for weight in (1.0, 0.0):
-        eng = MapFusion(road, FusionConfig(outage_end_weight_m_per_deg=weight), odometry_rate_hz=10.0)
-        prev = None
-        for k in range(2204):
-            x, y, yaw = k - 2000.0, 0.0, 0.0
-            if k % 10 == 0 and k <= 1900:
-                lat, lon = road.projection.to_geo(x + ox, y + oy)
-                eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
-            if 1950 < k < 2003:
-                continue
-            pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x + ox, y + oy, 0.0))
-            rel = gtsam.Pose3() if prev is None else prev.between(pose)
-            if k == 2003:  # the re-initialised VO: the motion, turned by its heading error
-                rel = gtsam.Pose3(gtsam.Rot3.Yaw(math.radians(13.0)), rel.translation())
-            eng.add_odometry(0.1 * k, rel.matrix())
-            prev = pose
-        last = eng.online_estimates()[1][-1]
-        errs[weight] = math.hypot(last.x() - ox - 203.0, last.y() - oy)
+        # the re-initialised VO: the motion, turned by its heading error
+        x, y = _last_on_the_tee(tee, FusionConfig(outage_end_weight_m_per_deg=weight),
+                                lambda s_m: (s_m - 2000.0, 0.0, 0.0), (1950, 2003),
+                                lambda rel: gtsam.Pose3(gtsam.Rot3.Yaw(math.radians(13.0)), rel.translation()),
+                                frames=2204)
+        errs[weight] = math.hypot(x - 203.0, y)
     assert errs[1.0] < 15.0 and errs[0.0] > 100.0, errs
 
 
