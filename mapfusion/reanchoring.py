@@ -117,6 +117,11 @@ class Reanchoring:
         self.counters.map_relocalisations += 1
         self.relocalised_at.append((self.track.t[-1], loc.driven_m))
 
+    def _carried_sigma_m(self, length_m: float) -> float:
+        """σ (m) of a step carried ``length_m`` along the road over an odometry gap: ``reloc_sigma_m`` +
+        ``outage_step_fraction`` of its length (the road follower's spread, and the gap's search's guess)."""
+        return self.cfg.reloc_sigma_m + self.cfg.outage_step_fraction * length_m
+
     def _along_road(self, k: int, prev: gtsam.Pose3) -> gtsam.Pose3:
         """The step into frame k. After an odometry outage longer than ``reloc_gap_s`` with ``outage_step =
         road`` and the map: as far as the odometry's guess (the last velocity straight on) goes, but along the
@@ -152,7 +157,7 @@ class Reanchoring:
         guess = start.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(chord * math.cos(half), chord * math.sin(half),
                                                                       0.0)))
         x, y, yaw = self._follower.follow(*place, length_m, (guess.x(), guess.y()),
-                                          cfg.reloc_sigma_m + cfg.outage_step_fraction * length_m,
+                                          self._carried_sigma_m(length_m),
                                           target_yaw_rad=start.rotation().yaw() + 2.0 * half,
                                           weight_m_per_deg=cfg.outage_end_weight_m_per_deg,
                                           max_deg=cfg.outage_end_max_deg)

@@ -79,7 +79,7 @@ class MapSearching(Reanchoring):
         if cfg.reloc_gap_guess_floor >= 1.0:
             return None
         length_m = math.hypot(pred.x() - prev.x(), pred.y() - prev.y())
-        return Guess(pred.x(), pred.y(), cfg.reloc_sigma_m + cfg.outage_step_fraction * length_m,
+        return Guess(pred.x(), pred.y(), self._carried_sigma_m(length_m),
                      pred.rotation().yaw(), math.radians(cfg.outage_rot_sigma_deg), cfg.reloc_gap_guess_floor)
 
     def _gps_left_it_off_the_roads(self, k: int) -> bool:
