@@ -4,12 +4,16 @@ Markov model over the road graph's edges and travel directions.
 At every step the candidates are the (edge, direction) pairs with a way-point within the search
 radius of the predicted pose (a one-way edge in its legal direction only). A candidate's emission is
 the paper's matching cost taken as a negative log-likelihood, −D / ``hmm_emission_scale_m`` with D =
-E + w·A for the candidate's best way-point in its own direction. Transitions follow Newson & Krumm
-(2009): the network distance between the previous hypothesis and the candidate, along the edge or
-through the vertex the previous edge leads to, should equal the distance the odometry moved; the
-log-probability is −|d_network − d_odometry| / ``hmm_transition_scale_m``. A jump the graph does not
-join costs ``hmm_jump_penalty`` (so a wrong history can still be left). The forward filter keeps the
-``hmm_beam`` most probable hypotheses, normalised to a posterior that sums to one.
+E + w·A at the candidate's foot: the edge's way-point nearest the pose, in the candidate's own
+direction. (Not the edge's least D: on a curve that way-point slides along the road to wherever the
+road's direction matches the heading's error, which both flatters a curved road and moves the
+candidate's position by metres a step.) Transitions follow Newson & Krumm (2009): the network
+distance between the previous hypothesis and the candidate (each at the pose projected onto its
+road), along the edge or through the vertex the previous edge leads to, should equal the distance
+the odometry moved; the log-probability is −|d_network − d_odometry| / ``hmm_transition_scale_m``.
+A jump the graph does not join costs ``hmm_jump_penalty`` (so a wrong history can still be left).
+The forward filter keeps the ``hmm_beam`` most probable hypotheses, normalised to a posterior that
+sums to one.
 
 The engine asks for a map prior only from the most probable road, and only when its posterior
 is at least ``hmm_min_posterior``: at a junction, beside a parallel road or above a tunnel the
@@ -54,33 +58,32 @@ class Step:
 
 
 def candidates(road: RoadMap, near: np.ndarray, x: float, y: float, yaw: float, w: float) -> list[Candidate]:
-    """The best way-point of every (edge, direction) among the way-point indices ``near``
-    (join curves are not edges and are left out), forward then backward, edges ascending."""
+    """Every (edge, direction) among the way-point indices ``near`` (join curves are not edges and
+    are left out), forward then backward, edges ascending. A candidate stands at the foot of the
+    pose on its edge (the edge's way-point nearest the pose), its cost the D = E + w·A there and its
+    position along the edge the pose projected onto the road's direction there."""
     idx = near[~road.is_join[near]]
     if idx.size == 0:
         return []
     e = np.hypot(road.xy_m[idx, 0] - x, road.xy_m[idx, 1] - y)
-    cos_d = np.clip(road.yaw_cos[idx] * math.cos(yaw) + road.yaw_sin[idx] * math.sin(yaw), -1.0, 1.0)
-    a_fwd = np.degrees(np.arccos(cos_d))  # angle to the drawing direction, [0, 180]
-    points = idx.tolist()
-    edges = road.edge[idx].tolist()
-    travel = road.travel[idx]
-    one_way = bool(travel.any())
+    edges = road.edge[idx]
+    order = np.lexsort((e, edges))  # by edge, each edge's nearest way-point first (ties: the first in `near`)
+    first = np.ones(order.size, dtype=bool)
+    first[1:] = edges[order[1:]] != edges[order[:-1]]
+    foot = order[first]
+    i = idx[foot]
+    cos_r, sin_r = road.yaw_cos[i], road.yaw_sin[i]
+    a_fwd = np.degrees(np.arccos(np.clip(cos_r * math.cos(yaw) + sin_r * math.sin(yaw), -1.0, 1.0)))
+    # along the road's direction at the foot: the way-points' spacing does not step the position
+    along = road.s_m[i] + (x - road.xy_m[i, 0]) * cos_r + (y - road.xy_m[i, 1]) * sin_r
+    along = np.clip(along, 0.0, road.edge_length_m[edges[foot]])
+    rows = list(zip(edges[foot].tolist(), i.tolist(), e[foot].tolist(), a_fwd.tolist(), along.tolist(),
+                    road.travel[i].tolist()))
     out = []
-    for direction, a in ((1, a_fwd), (-1, 180.0 - a_fwd)):
-        d_arr = e + w * a
-        if one_way:  # a one-way edge is a candidate in its legal direction only
-            d_arr[travel == -direction] = math.inf
-        d = d_arr.tolist()
-        best: dict[int, int] = {}  # edge → position of its least D (the first of equal ones)
-        for j, edge in enumerate(edges):
-            k = best.get(edge)
-            if k is None or d[j] < d[k]:
-                best[edge] = j
-        for edge in sorted(best):
-            j = best[edge]
-            if d[j] < math.inf:
-                out.append(Candidate(edge, direction, points[j], d[j], road.s_m.item(points[j])))
+    for direction in (1, -1):
+        for edge, point, dist, a, s, travel in rows:  # (edges ascending: lexsort's primary key)
+            if travel != -direction:  # a one-way edge is a candidate in its legal direction only
+                out.append(Candidate(edge, direction, point, dist + w * (a if direction > 0 else 180.0 - a), s))
     return out
 
 

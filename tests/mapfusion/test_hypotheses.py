@@ -14,8 +14,9 @@ from mapfusion import RoadMap
 from mapfusion.roadmap import can_drive
 from mapfusion.config import FusionConfig, RoadTracking
 from mapfusion.hypotheses import RoadHypotheses, candidates
+from mapfusion.geometry import wrap_angle
 from mapfusion.matcher import match
-from tests.helpers import MAPS, straight_road, write_osm
+from tests.helpers import MAPS, circle_road, straight_road, write_osm
 
 GRID = RoadMap.from_osm(MAPS / "synthetic" / "grid.osm")
 CFG = FusionConfig(road_tracking=RoadTracking.hmm)
@@ -66,7 +67,14 @@ def test_on_a_lone_road_it_is_the_single_frame_match(lone_road, along, offset, y
     assert st_.best is not None and m is not None
     assert st_.best.edge == m.edge and st_.best.index == m.index
     assert (st_.best.direction < 0) == m.reversed
-    assert st_.posterior == pytest.approx(1.0)  # one road, one direction that explains the heading
+    if steps == 1:  # one road, two directions: the posterior is the emissions' alone
+        cands = candidates(road, road.query_radius(x, y, CFG.search_radius_m), x, y, heading + yaw_err,
+                           CFG.angle_weight_m_per_deg)
+        costs = sorted(c.cost for c in cands)
+        assert len(costs) == 2
+        assert st_.posterior == pytest.approx(1.0 / (1.0 + math.exp(-(costs[1] - costs[0]) / CFG.hmm_emission_scale_m)))
+    else:  # after a second step the other direction has moved against the odometry: it is ruled out
+        assert st_.posterior == pytest.approx(1.0)
 
 
 def _junction_drives(road: RoadMap):
@@ -149,6 +157,38 @@ def test_leaving_the_network_is_a_lost_event(tmp_path):
     (tmp_path / "single").mkdir()
     single = _drive_off_the_road(tmp_path / "single", FusionConfig())
     assert single.counters.lost_events == 0 and single.lost_s == 0.0  # the single-frame default never says so
+
+
+@pytest.fixture(scope="module")
+def ring_road(tmp_path_factory):
+    p = write_osm(tmp_path_factory.mktemp("ring"), [(circle_road(60.0, n=90), {"highway": "primary"})])
+    return RoadMap.from_osm(p, cache=False)
+
+
+@settings(max_examples=60, deadline=None)
+@given(angle=st.floats(0.0, 2 * math.pi), offset=st.floats(-15.0, 15.0), yaw=st.floats(-math.pi, math.pi),
+       other_yaw=st.floats(-math.pi, math.pi))
+def test_a_candidate_stands_at_the_foot_of_the_pose(ring_road, angle, offset, yaw, other_yaw):
+    """On a curve: each candidate is its edge's way-point nearest the pose (whatever the heading, which
+    changes only the cost), its cost D = E + w·A there, and its position along the edge the pose
+    projected onto the road's direction there."""
+    road, w = ring_road, CFG.angle_weight_m_per_deg
+    x, y = (60.0 + offset) * math.cos(angle), (60.0 + offset) * math.sin(angle)
+    near = road.query_radius(x, y, CFG.search_radius_m)
+    got = candidates(road, near, x, y, yaw, w)
+    assert got and {c.direction for c in got} == {1, -1}
+    for c in got:
+        on_edge = near[(road.edge[near] == c.edge) & ~road.is_join[near]]
+        dist = np.hypot(road.xy_m[on_edge, 0] - x, road.xy_m[on_edge, 1] - y)
+        assert math.hypot(road.xy_m[c.index, 0] - x, road.xy_m[c.index, 1] - y) == pytest.approx(dist.min())
+        road_yaw = float(road.yaw_rad[c.index]) + (0.0 if c.direction > 0 else math.pi)
+        assert c.cost == pytest.approx(dist.min() + w * abs(math.degrees(float(wrap_angle(yaw - road_yaw)))), abs=1e-6)
+        proj = float(road.s_m[c.index]) + (x - road.xy_m[c.index, 0]) * math.cos(road.yaw_rad[c.index]) \
+            + (y - road.xy_m[c.index, 1]) * math.sin(road.yaw_rad[c.index])
+        assert c.along_m == pytest.approx(min(max(proj, 0.0), float(road.edge_length_m[c.edge])), abs=1e-6)
+    turned = candidates(road, near, x, y, other_yaw, w)
+    assert [(c.edge, c.direction, c.index, c.along_m) for c in turned] == [(c.edge, c.direction, c.index, c.along_m)
+                                                                           for c in got]
 
 
 @pytest.mark.parametrize("tag, directions", [(None, {1, -1}), ("yes", {1}), ("-1", {-1})])
