@@ -527,6 +527,23 @@ class FusionConfig:
         max=100,
         source="robustness (issue 6); by measurement",
     )
+    relocalise_track_fixes: int = param(
+        10,
+        "Consecutive gated fixes that agree with each other as a vehicle's track (each within reach of the one "
+        "before at relocalise_track_speed_mps, plus the gate) re-initialise the estimate from GPS even where the "
+        "odometry's distances disagree with them (a VO that stalled, jumped or lost its scale); 0: never.",
+        min=0,
+        max=1000,
+        source="issue 16 (real TrianFlow on KITTI 01: 80 RTK fixes in a row rejected after the VO stalled)",
+    )
+    relocalise_track_speed_mps: float = param(
+        70.0,
+        "Fastest a vehicle moves between two fixes of a track run (relocalise_track_fixes).",
+        unit="m/s",
+        min=0.0,
+        exclusive_min=True,
+        source="issue 16; 250 km/h",
+    )
     odometry_prior_every_s: float = param(
         1.0, "How often the marginal σ is checked for odometry priors.", unit="s", min=0.0, exclusive_min=True
     )

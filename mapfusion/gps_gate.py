@@ -6,7 +6,10 @@ estimate's positional σ and a floor) from the frame's estimate. A run of reject
 with each other — each one's distance from the run's first matches the odometry's over the same
 frames, within the gate and a fraction of the distance — means the estimate is lost: after
 ``relocalise_after_fixes`` such fixes within ``relocalise_window_s`` the engine re-initialises
-from them.
+from them. So does a longer run, ``relocalise_track_fixes``, that agrees only with itself (each fix
+within a vehicle's reach of the one before) while the odometry's distances disagree: the odometry
+is what failed then (it stalled, jumped, lost its scale), and a drive of consecutive fixes none of
+which the estimate explains is the GPS's word against a sensor that has already shown it is wrong.
 """
 
 from __future__ import annotations
@@ -81,6 +84,7 @@ class GpsGate:
     def __init__(self, cfg: FusionConfig) -> None:
         self.cfg = cfg
         self.run: list[tuple[float, float, float, int]] = []  # consecutive gated fixes (t, x, y, frame)
+        self.track: list[tuple[float, float, float, int]] = []  # the same, as far as they agree only with each other
         self.open_m = 0.0  # after an odometry outage: how far the estimate may be off (σ, m), until the next fix
         self.open_k = -1  # the outage's first frame (while open)
         self.taken_k = -1  # the frame of the last fix taken (the estimate was right there)
@@ -90,7 +94,7 @@ class GpsGate:
         off, so the next fix within the widened gate re-anchors it rather than being rejected."""
         self.open_m = max(self.open_m, sigma_m)
         self.open_k = k if self.open_k < 0 else self.open_k
-        self.run = []  # fixes from before the outage say nothing of where the odometry resumed
+        self.run, self.track = [], []  # fixes from before the outage say nothing of where the odometry resumed
 
     def check(self, track: Track, k: int, x: float, y: float, sigma: float, pos_sigma: float) -> Verdict:
         """The verdict on a fix at frame k (ENU metres, σ per axis)."""
@@ -105,6 +109,7 @@ class GpsGate:
         t = track.t[k]
         if dist <= cfg.gps_gate_sigma * spread:
             self.run.clear()
+            self.track.clear()
             self.taken_k = max(self.taken_k, k)
             if opened:
                 self.open_m, self.open_k = 0.0, -1
@@ -120,7 +125,25 @@ class GpsGate:
         # the run is broken by any accepted fix; with GPS every 5 s, three fixes span 10 s
         if self._extend(track, t, x, y, k, sigma) >= cfg.relocalise_after_fixes:
             return Verdict.relocalise
+        if 0 < cfg.relocalise_track_fixes <= self._follow(track, t, x, y, k, sigma):
+            self.run = list(self.track)  # (the re-localisation anchors on the run it is handed)
+            return Verdict.relocalise
         return Verdict.reject
+
+    def _follow(self, track: Track, t: float, x: float, y: float, k: int, sigma: float) -> int:
+        """Add a gated fix to the track run (fixes each within a vehicle's reach of the one before, within the
+        window); a fix out of reach starts it afresh. Returns its length."""
+        cfg = self.cfg
+        if track.online[k] is None:  # (a re-localisation needs the estimate at both ends of its run)
+            return len(self.track)
+        self.track = [r for r in self.track if t - r[0] <= cfg.relocalise_window_s]
+        if self.track:
+            t0, x0, y0, _ = self.track[-1]
+            reach = cfg.relocalise_track_speed_mps * abs(t - t0) + cfg.gps_gate_sigma * math.sqrt(2.0) * sigma
+            if math.hypot(x - x0, y - y0) > reach:
+                self.track = []
+        self.track.append((t, x, y, k))
+        return len(self.track)
 
     def _extend(self, track: Track, t: float, x: float, y: float, k: int, sigma: float) -> int:
         """Add a gated fix to the run; the run is then its longest consistent tail within the window (a fix
@@ -172,6 +195,6 @@ class GpsGate:
         # a 3σ error at either end of the run's chord, plus a floor
         yaw_sigma = math.atan2(3.0 * sigma, max(length, 1.0)) + math.radians(cfg.relocalise_yaw_sigma_floor_deg)
         since_k, fixes = self.open_k, tuple((x, y, k) for _, x, y, k in self.run)
-        self.run, self.open_k = [], -1
+        self.run, self.track, self.open_k = [], [], -1
         taken_k, self.taken_k = (self.taken_k if self.taken_k < k0 else -1), kn
         return Relocalisation(kn, anchor, yaw_sigma, since_k, fixes, taken_k)

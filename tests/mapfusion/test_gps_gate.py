@@ -186,3 +186,51 @@ def test_a_gps_re_localisation_after_a_denied_zone_mends_the_zone_in_the_smoothe
         assert smoothed_err < 10.0, smoothed_err
     else:
         assert smoothed_err > 100.0, smoothed_err
+
+
+def _stalled_track(n: int = 300) -> Track:
+    """Frames at 10 Hz whose odometry has stalled: every online estimate at the origin."""
+    track = Track(StateModel.planar, 0.1, flat=True)
+    for k in range(n):
+        track.append(0.1 * k, gtsam.Pose3())
+        track.online[k] = gtsam.Pose3()
+    return track
+
+
+@given(speed=st.floats(20.0, 60.0), ahead=st.floats(30.0, 500.0), needed=st.integers(3, 30),
+       sigma=st.floats(0.2, 0.5))
+def test_a_run_of_fixes_that_agree_only_with_each_other_re_anchors_once_long_enough(speed, ahead, needed, sigma):
+    """RTK fixes at 10 Hz moving at ``speed`` while the odometry has stalled (issue 16: TrianFlow on KITTI 01):
+    each is rejected and no run agrees with the odometry's distances, but the fixes agree with each other as
+    a track, so the ``relocalise_track_fixes``-th in a row re-anchors on the last one; with the rule off,
+    none does."""
+    # (over two fixes the GPS moves farther than the odometry rule's tolerance: that rule never fires)
+    assume(speed * 0.2 > CFG.gps_gate_sigma * math.sqrt(2.0) * sigma)
+    track = _stalled_track()
+    cfg = FusionConfig(relocalise_track_fixes=needed)
+    gates = {True: GpsGate(cfg), False: GpsGate(FusionConfig(relocalise_track_fixes=0))}
+    for on, gate in gates.items():
+        for i in range(needed + 20):
+            k = 10 + i
+            verdict = gate.check(track, k, ahead + speed * 0.1 * i, 0.0, sigma, 0.05)
+            if on and i == needed - 1:
+                assert verdict is Verdict.relocalise
+                r = gate.relocalisation(track, sigma)
+                assert r.k == k and math.hypot(r.pose.x() - (ahead + speed * 0.1 * i), r.pose.y()) < 1e-6
+                assert [kk for _, _, kk in r.fixes] == list(range(10, k + 1))
+                break
+            assert verdict is Verdict.reject
+
+
+@given(seed=st.integers(0, 10_000))
+def test_scattered_outliers_never_make_a_track(seed):
+    """Fixes scattered ±300 m about a right estimate (multipath outliers, each on its own) are out of a
+    vehicle's reach of each other: no run of them, whatever its length, re-anchors the estimate."""
+    rng = np.random.default_rng(seed)
+    track = _track(n=500)
+    gate = GpsGate(CFG)
+    for k in range(100, 400):
+        dx, dy = rng.uniform(-300.0, 300.0, 2)
+        if math.hypot(dx, dy) < 60.0:
+            continue  # (near the estimate: taken, and the run ends anyway)
+        assert gate.check(track, k, 10.0 * 0.1 * k + dx, dy, 0.5, 0.1) is Verdict.reject
