@@ -9,15 +9,25 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
+import pytest
 from hypothesis import strategies as st
 
 from mapfusion.synthetic import OsmBuilder
 
 REPO = Path(__file__).resolve().parent.parent
 MAPS = REPO / "maps"
+#: The real data (KITTI drives, OSM cities, VO results): never in the repository.
+DATA = os.environ.get("MAPFUSION_DATA")
+
+
+def data_required(folder: str) -> pytest.MarkDecorator:
+    """Skip unless ``$MAPFUSION_DATA/folder`` is there (``.ci/run`` points it at ../shared/data)."""
+    return pytest.mark.skipif(not DATA or not (Path(DATA) / folder).is_dir(),
+                              reason="MAPFUSION_DATA is not set (.ci/run points it at ../shared/data)")
 
 
 @st.composite

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -12,12 +11,11 @@ from typer.testing import CliRunner
 from mapfusion.harness.cli import app
 from mapfusion.formats import FormatError
 from mapfusion.kitti import filled_points, georeference, read_kml_track
+from tests.helpers import DATA, data_required
 
 runner = CliRunner()
-DATA = os.environ.get("MAPFUSION_DATA")
 SEQUENCES = ("00", "01", "02", "05", "07")
-needs_data = pytest.mark.skipif(not DATA or not (Path(DATA) / "kitti").is_dir(),
-                                reason="MAPFUSION_DATA is not set (.ci/run points it at ../shared/data)")
+needs_data = data_required("kitti")
 
 
 @needs_data

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +10,7 @@ import pytest
 from mapfusion import RoadMap
 from mapfusion.matcher import angle_deg
 from mapfusion.harness.stress import JunctionKind, StressConfig, classify_junctions, run_stress, stress_poses
-from tests.helpers import MAPS
+from tests.helpers import DATA, MAPS, data_required
 
 
 def test_stress_classifies_the_synthetic_junctions():
@@ -95,10 +94,8 @@ def test_stress_drives_keep_to_one_way_roads(monkeypatch):
     assert 0 < legal < every
 
 
-DATA = os.environ.get("MAPFUSION_DATA")
 OSM = Path(DATA) / "osm" if DATA else None
-needs_osm = pytest.mark.skipif(OSM is None or not OSM.is_dir(),
-                               reason="MAPFUSION_DATA is not set (.ci/run points it at ../shared/data)")
+needs_osm = data_required("osm")
 
 
 def _sequence_rates(path: Path, seed: int) -> tuple[float, float]:

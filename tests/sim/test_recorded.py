@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +14,9 @@ from mapfusion.errors import InputError
 from mapfusion.roadmap import RoadMap
 from sim.recorded import load_recorded, recorded_gps
 from sim.scenario import GpsMode, scenario_from_dict
+from tests.helpers import DATA, data_required
 
-DATA = os.environ.get("MAPFUSION_DATA")
-pytestmark = pytest.mark.skipif(not DATA or not (Path(DATA) / "kitti").is_dir(),
-                                reason="MAPFUSION_DATA is not set (.ci/run points it at ../shared/data)")
+pytestmark = data_required("kitti")
 
 
 def _kitti(seq: str = "07", **kw):
