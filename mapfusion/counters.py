@@ -24,6 +24,7 @@ class Counters:
     odometry_priors: int = 0
     recoveries: int = 0
     gps_relocalisations: int = 0
+    gps_rescales: int = 0  # re-localisations by a track run that also re-scaled the odometry (issue 16)
     updates: int = 0
     lost_events: int = 0  # road hypotheses: the estimate lost (issue 16)
     odometry_vetoed: int = 0  # odometry steps that disagreed with wheel + gyro: replaced by theirs (issue 18)

@@ -206,6 +206,7 @@ class Initialiser:
         self.fixes: list[Fix] = []
         self.windows: ScaleEstimate | None = None  # the windows' median at initialisation
         self._fixes_since_fit = 0
+        self._refit_from_t = -math.inf  # refits fit no fix before this (a re-scaling's time)
 
     def add_fix(self, t: float, x: float, y: float, sigma: float) -> None:
         """A fix before initialisation."""
@@ -278,6 +279,13 @@ class Initialiser:
             return None
         return Alignment(float(sc), sigma, math.atan2(r[1, 0], r[0, 0]), tr)
 
+    def rescaled(self, scale: float, sigma: float, t: float) -> None:
+        """The odometry's scale was re-measured at time t (a GPS track run): later refits are judged against
+        it and fit only the fixes from then on (the earlier ones measured the scale that broke)."""
+        n = self.windows.samples if self.windows is not None else 1
+        self.windows = ScaleEstimate(scale, sigma, n)
+        self._refit_from_t = t
+
     def refit_with_fix(self, track: Track, t: float, x: float, y: float, sigma: float) -> Alignment | None:
         """A fix after initialisation: every ``scale_samples`` fixes, a refit over the last
         ``scale_refit_window_s`` (its scale and σ replace the current ones), else None."""
@@ -286,7 +294,7 @@ class Initialiser:
         if self._fixes_since_fit < self.cfg.scale_samples:
             return None
         self._fixes_since_fit = 0
-        return self.fit(track, t - self.cfg.scale_refit_window_s)
+        return self.fit(track, max(t - self.cfg.scale_refit_window_s, self._refit_from_t))
 
 
 @dataclass(frozen=True)

@@ -189,6 +189,8 @@ class Reanchoring:
         and those fixes are added, so the estimate between the outage and the re-anchoring is mended too."""
         r = self._gate.relocalisation(self.track, sigma)
         k, pose, yaw_sigma = r.k, r.pose, r.yaw_sigma_rad
+        if r.scale_ratio is not None:
+            self._rescale(*r.scale_ratio)
         if 0 <= r.since_k < r.k and len(r.fixes) >= 2:
             k, pose, sigma = r.since_k, *self._placed_on(r.since_k, r.fixes, sigma, yaw_sigma)
         noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, yaw_sigma, sigma))
@@ -200,6 +202,18 @@ class Reanchoring:
         for x, y, kf in r.fixes if k == r.since_k else ():
             self._smoother.add(factors.gps_factor(self.cfg.state, kf, x, y, None, sigma))
         self._update()
+
+    def _rescale(self, ratio: float, relative_sigma: float) -> None:
+        """A track run showed the odometry's scale off by ``ratio`` (known to ``relative_sigma``): the frames from
+        now on use the new scale, and later refits are judged against it, not against the initialisation's."""
+        a = self.alignment
+        assert a is not None
+        scale = a.scale * ratio
+        sigma = scale * math.hypot(a.relative_sigma, relative_sigma)
+        log.info("the GPS track run re-scales the odometry: %.4f → %.4f (± %.4f)", a.scale, scale, sigma)
+        self.alignment = dataclasses.replace(a, scale=scale, scale_sigma=sigma)
+        self.initialiser.rescaled(scale, sigma, self.track.t[-1])
+        self.counters.gps_rescales += 1
 
     def _spread_back(self, k0: int, k1: int, was: gtsam.Pose3, now: gtsam.Pose3) -> None:
         """A GPS re-localisation moved frame k1 from ``was`` to ``now``; the estimate was right at frame k0 (the

@@ -180,7 +180,7 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
                         "gps_rejected": c.gps_rejected, "gps_rejected_gate": c.gps_rejected_gate,
                         "gps_rejected_time": c.gps_rejected_time, "gps_rejected_invalid": c.gps_rejected_invalid,
                         "recoveries": c.recoveries, "odometry_jumps": c.odometry_jumps,
-                        "gps_relocalisations": c.gps_relocalisations,
+                        "gps_relocalisations": c.gps_relocalisations, "gps_rescales": c.gps_rescales,
                         "lost_events": c.lost_events, "lost_s": mf.engine.lost_s,
                         "map_relocalisations": c.map_relocalisations,
                         "road_fixes": c.road_fixes, "road_fixes_gated": c.road_fixes_gated,

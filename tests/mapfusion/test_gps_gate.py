@@ -234,3 +234,78 @@ def test_scattered_outliers_never_make_a_track(seed):
         if math.hypot(dx, dy) < 60.0:
             continue  # (near the estimate: taken, and the run ends anyway)
         assert gate.check(track, k, 10.0 * 0.1 * k + dx, dy, 0.5, 0.1) is Verdict.reject
+
+
+def _collapsed_track(speed_mps: float, factor: float, n: int = 300) -> Track:
+    """Frames at 10 Hz whose odometry reports 1/``factor`` of a vehicle's ``speed_mps`` (a mono VO whose scale
+    collapsed): the online estimates move that slowly along x from the origin."""
+    track = Track(StateModel.planar, 0.1, flat=True)
+    for k in range(n):
+        x = speed_mps / factor * 0.1 * k
+        track.append(0.1 * k, gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(speed_mps / factor * 0.1 if k else 0.0, 0.0, 0.0)))
+        track.online[k] = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x, 0.0, 0.0))
+    return track
+
+
+@given(speed=st.floats(15.0, 60.0), factor=st.floats(1.5, 40.0), ahead=st.floats(30.0, 500.0),
+       needed=st.integers(5, 30), sigma=st.floats(0.2, 0.5))
+def test_a_track_run_measures_how_far_the_odometry_s_scale_is_off(speed, factor, ahead, needed, sigma):
+    """RTK fixes at 10 Hz moving ``factor`` times as fast as the estimate: the track run that re-anchors it
+    carries the ratio of the two chords (``factor``, to rounding) and its relative σ (√2 σ over the chord), when
+    the chord is at least ``relocalise_rescale_min_sigmas`` σ long and the factor within
+    ``relocalise_rescale_max``; else none."""
+    # (the odometry rule's run of three fixes must disagree with the odometry's distances, so the track rule fires)
+    assume(speed * 0.2 * (1.0 - 1.0 / factor) - 0.05 * speed * 0.2 / factor > CFG.gps_gate_sigma * math.sqrt(2.0) * sigma)
+    track = _collapsed_track(speed, factor)
+    gate = GpsGate(FusionConfig(relocalise_track_fixes=needed))
+    for i in range(needed):
+        verdict = gate.check(track, 10 + i, ahead + speed * 0.1 * (10 + i), 0.0, sigma, 0.05)
+    assert verdict is Verdict.relocalise
+    r = gate.relocalisation(track, sigma)
+    chord = speed * 0.1 * (needed - 1)
+    if chord < CFG.relocalise_rescale_min_sigmas * sigma or factor > CFG.relocalise_rescale_max:
+        assert r.scale_ratio is None
+    else:
+        assert r.scale_ratio is not None
+        ratio, rel_sigma = r.scale_ratio
+        assert ratio == pytest.approx(factor, rel=1e-9)
+        assert rel_sigma == pytest.approx(math.sqrt(2.0) * sigma / chord, rel=1e-9)
+    assert gate.scale_ratio is None  # (handed out once)
+
+
+def _collapse_drive(road: RoadMap, rescale: bool, factor: float = 8.0):
+    """25 m/s along the road with 10 Hz RTK fixes (σ 0.5 m) for the first 60 s; the odometry (metric until
+    then) reports 1/``factor`` of the motion from 30 s on, as TrianFlow did on KITTI 01 (26 m/s, eightfold).
+    Returns (engine, truth x)."""
+    n = 1500
+    x = -1950.0 + 2.5 * np.arange(n)
+    # (only the track rule re-anchors here, as on KITTI 01: the odometry rule's short runs keep firing on a
+    # synthetic drive, its fixes taken between them dragging the estimate along)
+    cfg = FusionConfig(relocalise_after_fixes=100, relocalise_rescale_max=20.0 if rescale else 1.0)
+    eng = MapFusion(road, cfg, gps_rate_hz=10.0, odometry_rate_hz=10.0)
+    for k in range(n):
+        if k < 600:
+            lat, lon = road.projection.to_geo(float(x[k]), 0.0)
+            eng.add_gps(0.1 * k, float(lat), float(lon), None, 0.5)
+        dx = 0.0 if k == 0 else 2.5 / factor if k >= 300 else 2.5
+        eng.add_odometry(0.1 * k, gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(dx, 0.0, 0.0)).matrix())
+    eng.finish()
+    return eng, x
+
+
+@pytest.mark.parametrize("rescale", [True, False])
+def test_a_vo_whose_scale_collapsed_is_re_scaled_by_the_gps_track_run(straight, rescale):
+    """The odometry's scale falls eightfold at 30 s, inside the GPS: the fixes leave the estimate behind, a track
+    run re-anchors it and re-scales the odometry, and 90 s after the GPS ends the estimate is still with the
+    vehicle (within 10 m). Without the re-scaling it falls behind at 22 m/s: by more than 1 km."""
+    eng, x = _collapse_drive(straight, rescale)
+    t_s, online = eng.online_estimates()
+    err_end = abs(online[-1].x() - x[-1])
+    if rescale:
+        assert eng.counters.gps_rescales >= 1
+        assert eng.scale == pytest.approx(8.0, rel=0.05)
+        assert err_end < 10.0, err_end
+    else:
+        assert eng.counters.gps_rescales == 0 and eng.counters.gps_relocalisations >= 1
+        assert eng.scale == pytest.approx(1.0, rel=0.05)
+        assert err_end > 1000.0, err_end
