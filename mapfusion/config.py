@@ -549,7 +549,7 @@ class FusionConfig:
         "A track run (relocalise_track_fixes) whose GPS chord is at least this many fix σ long also re-scales the "
         "odometry: its scale times the run's GPS chord over the estimate's chord between the same frames (the run "
         "fired because the odometry's distances disagree with the fixes': a mono VO whose scale collapsed keeps it "
-        "collapsed after the re-anchoring); at 30 σ the ratio is known to 5%. 0 with relocalise_rescale_max 1: never.",
+        "collapsed after the re-anchoring); at 30 σ the ratio is known to 5%.",
         unit="fix σ",
         min=0.0,
         source="issue 16 (real TrianFlow on KITTI 01: the VO's scale fell about eightfold at 21.8 s)",
@@ -557,7 +557,7 @@ class FusionConfig:
     relocalise_rescale_max: float = param(
         20.0,
         "Largest factor (up or down) a track run re-scales the odometry by; beyond it the odometry stopped or "
-        "leapt rather than changed its scale, and is left as it is.",
+        "leapt rather than changed its scale, and is left as it is (1: a track run never re-scales).",
         min=1.0,
         source="issue 16; a VO reporting under 1/20 of the motion has no scale to measure",
     )

@@ -161,10 +161,11 @@ class GpsGate:
             return None
         dg = math.hypot(xn - x0, yn - y0)
         do = math.hypot(pn.x() - p0.x(), pn.y() - p0.y())
-        if dg < cfg.relocalise_rescale_min_sigmas * sigma or not 1.0 <= cfg.relocalise_rescale_max * min(dg, do) / max(
-                dg, do, 1e-12):
+        ratio = dg / do if do > 0.0 else math.inf
+        limit = cfg.relocalise_rescale_max
+        if dg < cfg.relocalise_rescale_min_sigmas * sigma or not 1.0 / limit <= ratio <= limit:
             return None
-        return dg / do, math.sqrt(2.0) * sigma / dg
+        return ratio, math.sqrt(2.0) * sigma / dg
 
     def _extend(self, track: Track, t: float, x: float, y: float, k: int, sigma: float) -> int:
         """Add a gated fix to the run; the run is then its longest consistent tail within the window (a fix
