@@ -633,6 +633,9 @@ def _fuse_summary(eng, n: int, out: Path) -> None:
                   f"(rejected {c.gps_rejected}: {c.gps_rejected_gate} by the gate, {c.gps_rejected_time} for their time, "
                   f"{c.gps_rejected_invalid} invalid), odometry priors {c.odometry_priors}, "
                   f"recoveries {c.recoveries}, odometry jumps bridged {c.odometry_jumps}")
+    if c.gps_relocalisations:
+        console.print(f"GPS re-localisations {c.gps_relocalisations} (consistent fixes disagreed with the estimate), "
+                      f"{c.gps_rescales} of them re-scaling the odometry (the scale above is the last)")
     if c.wheel_frames or c.odometry_vetoed or eng.wheel_scale != 1.0:
         console.print(f"wheel + gyro: {c.wheel_frames} frames made where the odometry had none, {c.odometry_vetoed} "
                       f"odometry steps replaced; wheel scale {eng.wheel_scale:.4f}, gyro bias "

@@ -246,3 +246,27 @@ def test_kitti_errors_match_the_issues_measurement(seq, name, t_err, r_err):
     k = kitti_errors(read_kitti_poses(Path(DATA) / "kitti" / seq / "poses.txt"),
                      read_kitti_poses(Path(DATA) / "vo" / f"{name}.txt"))
     assert abs(k.t_err_percent - t_err) < 0.01 and abs(k.r_err_deg_per_100m - r_err) < 0.01
+
+
+@data_required("vo")
+@needs_data
+def test_fuse_reports_the_gps_re_scaling_of_a_collapsed_mono_vo(tmp_path):
+    """Real TrianFlow on KITTI 01 (its scale collapses eightfold inside the 30 s of RTK GPS, issue 16): ``fuse``
+    says GPS re-localised it and that one of those re-scaled the odometry, and the scale it prints is the
+    re-scaled one, several times the initialisation's ~30 (the drive's first 20 s)."""
+    d = Path(DATA) / "kitti" / "01"
+    r = runner.invoke(app, ["import", "kitti", "--poses", str(d / "poses.txt"), "--times", str(d / "times.txt"),
+                            "--gps", str(d / "rtk_gps.kml"), "--out", str(tmp_path / "k01")])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["fuse", "--map", str(d / "map.osm"), "--odometry", str(Path(DATA) / "vo" / "trianflow_01.txt"),
+                            "--odometry-format", "kitti", "--times", str(d / "times.txt"), "--odometry-frame", "camera",
+                            "--gps", str(tmp_path / "k01" / "gps.csv"), "--gps-until-s", "30",
+                            "--out", str(tmp_path / "est.tum")])
+    assert r.exit_code == 0, r.output
+    import re
+
+    m = re.search(r"GPS re-localisations (\d+) .*?, (\d+) of them re-scaling", " ".join(r.output.split()))
+    assert m is not None, r.output
+    assert int(m.group(1)) >= int(m.group(2)) >= 1
+    scale = float(re.search(r"scale ([0-9.]+) ±", r.output).group(1))
+    assert scale > 100.0, scale
