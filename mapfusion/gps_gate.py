@@ -89,7 +89,7 @@ class GpsGate:
         self.open_m = 0.0  # after an odometry outage: how far the estimate may be off (σ, m), until the next fix
         self.open_k = -1  # the outage's first frame (while open)
         self.taken_k = -1  # the frame of the last fix taken (the estimate was right there)
-        self.scale_ratio: tuple[float, float] | None = None  # set when a track run fires (see _track_ratio)
+        self.by_track = False  # the run handed to the next re-localisation is a track run (see _scale_ratio)
 
     def open(self, sigma_m: float, k: int) -> None:
         """The odometry lost track (an outage longer than ``reloc_gap_s``): the estimate may be ``sigma_m``
@@ -129,7 +129,7 @@ class GpsGate:
             return Verdict.relocalise
         if 0 < cfg.relocalise_track_fixes <= self._follow(track, t, x, y, k, sigma):
             self.run = list(self.track)  # (the re-localisation anchors on the run it is handed)
-            self.scale_ratio = self._track_ratio(track, sigma)
+            self.by_track = True
             return Verdict.relocalise
         return Verdict.reject
 
@@ -148,24 +148,16 @@ class GpsGate:
         self.track.append((t, x, y, k))
         return len(self.track)
 
-    def _track_ratio(self, track: Track, sigma: float) -> tuple[float, float] | None:
-        """The track run's GPS chord over the estimate's own chord between the same frames (how far the
-        odometry's scale is off) and that ratio's relative σ (the fixes' σ at both ends of the chord); None
-        when the chord is under ``relocalise_rescale_min_sigmas`` fix σ, or the ratio beyond
-        ``relocalise_rescale_max`` either way (an odometry that stopped has no scale to measure)."""
-        cfg = self.cfg
-        _, x0, y0, k0 = self.track[0]
-        _, xn, yn, kn = self.track[-1]
-        p0, pn = track.online[k0], track.online[kn]
-        if p0 is None or pn is None:
+    def _scale_ratio(self, gps_m: float, estimate_m: float, sigma: float) -> tuple[float, float] | None:
+        """A track run's GPS chord over the estimate's own chord between the same frames (how far the odometry's
+        scale is off) and that ratio's relative σ (the fixes' σ at both ends of the chord); None when the chord is
+        under ``relocalise_rescale_min_sigmas`` fix σ, or the ratio beyond ``relocalise_rescale_max`` either way
+        (an odometry that stopped has no scale to measure)."""
+        ratio = gps_m / estimate_m if estimate_m > 0.0 else math.inf
+        limit = self.cfg.relocalise_rescale_max
+        if gps_m < self.cfg.relocalise_rescale_min_sigmas * sigma or not 1.0 / limit <= ratio <= limit:
             return None
-        dg = math.hypot(xn - x0, yn - y0)
-        do = math.hypot(pn.x() - p0.x(), pn.y() - p0.y())
-        ratio = dg / do if do > 0.0 else math.inf
-        limit = cfg.relocalise_rescale_max
-        if dg < cfg.relocalise_rescale_min_sigmas * sigma or not 1.0 / limit <= ratio <= limit:
-            return None
-        return ratio, math.sqrt(2.0) * sigma / dg
+        return ratio, math.sqrt(2.0) * sigma / gps_m
 
     def _extend(self, track: Track, t: float, x: float, y: float, k: int, sigma: float) -> int:
         """Add a gated fix to the run; the run is then its longest consistent tail within the window (a fix
@@ -219,5 +211,6 @@ class GpsGate:
         since_k, fixes = self.open_k, tuple((x, y, k) for _, x, y, k in self.run)
         self.run, self.track, self.open_k = [], [], -1
         taken_k, self.taken_k = (self.taken_k if self.taken_k < k0 else -1), kn
-        ratio, self.scale_ratio = self.scale_ratio, None
+        ratio = self._scale_ratio(length, math.hypot(*do), sigma) if self.by_track else None
+        self.by_track = False
         return Relocalisation(kn, anchor, yaw_sigma, since_k, fixes, taken_k, ratio)
