@@ -21,7 +21,7 @@ import gtsam
 import numpy as np
 
 from . import factors
-from .config import FusionConfig, PriorTarget, RoadTracking
+from .config import FusionConfig, PriorTarget, RoadTracking, TrafficSide
 from .counters import Counters
 from .hypotheses import RoadHypotheses, Step, candidates
 from .matcher import Match, lateral_bound_ok, map_pose, match, match_candidates, match_range
@@ -213,9 +213,13 @@ class MapAssociation:
             return None, None
         self.counters.matches += 1
         width = m.lanes * self.cfg.lane_width_m
-        if self._since_prior_m < self.cfg.prior_spacing_m or lateral_bound_ok(m, pred.matrix(), width):
+        side = self.side_m(m)
+        if self._since_prior_m < self.cfg.prior_spacing_m or lateral_bound_ok(m, pred.matrix(), width, side):
             return m, None  # (most frames: on the road; R_t is built only when a prior may follow)
         r_pose, lateral = map_pose(m, pred)
+        if side:
+            r_pose = _across(r_pose, side)  # (the band's centre: the driving side's lane, not the centre line)
+            lateral = abs(r_pose.transformTo(pred.translation())[1])
         if lateral <= width:
             return m, None
         # a confident road hypothesis replaces the single-frame gates: its heading is a valid
@@ -229,14 +233,14 @@ class MapAssociation:
             # the map says the vehicle is on the road, not on its centre line: the band's
             # information given the estimate's own lateral σ (and the map's)
             sigma = max(math.hypot(lat_sigma_m, self.cfg.prior_map_sigma_m), 0.05)
-            upd = factors.band_update(m.signed_lateral_m, sigma, self.cfg.prior_band_fraction * width)
+            upd = factors.band_update(m.signed_lateral_m - side, sigma, self.cfg.prior_band_fraction * width)
             if upd is None:
                 return m, None
             r_pose = _across(r_pose, upd[0])
             noise = factors.band_prior_noise(self.cfg, max(upd[1], BAND_SIGMA_FLOOR_M), self._robust)
         else:
             if self.cfg.prior_target is PriorTarget.edge:
-                r_pose = _across(r_pose, math.copysign(self.cfg.prior_band_fraction * width, m.signed_lateral_m))
+                r_pose = _across(r_pose, math.copysign(self.cfg.prior_band_fraction * width, m.signed_lateral_m - side))
             v_lon, v_lat = step.x() / dt_s, step.y() / dt_s
             yaw = pred.rotation().yaw()
             motion_dir = yaw + math.atan2(step.y(), step.x()) if step.translation()[:2].any() else yaw
@@ -244,6 +248,16 @@ class MapAssociation:
         self.counters.map_priors += 1
         self._since_prior_m = 0.0
         return m, factors.pose_prior(k, r_pose, noise)
+
+    def side_m(self, m: Match) -> float:
+        """Signed offset (m, left of the direction of travel positive) of the lane the vehicle keeps to from the
+        matched road's centre line (``traffic_side``): on a two-way road the middle of its direction's
+        max(1, lanes // 2) lanes, elsewhere 0."""
+        side = TrafficSide(self.cfg.traffic_side)  # (a string passed straight to FusionConfig counts too)
+        if side is TrafficSide.none or m.is_join or self.road.two_way_sign.item(m.index) > 0:
+            return 0.0
+        half_m = max(1, m.lanes // 2) * 0.5 * self.cfg.lane_width_m
+        return half_m if side is TrafficSide.left else -half_m
 
     def odometry_prior(self, k: int, pred: gtsam.Pose3, pos_sigma_m: float) -> gtsam.PriorFactorPose3 | None:
         """Paper IV.B: when the estimate's positional σ exceeds the width of the road it is on

@@ -177,14 +177,15 @@ def match_range(road: RoadMap, start: int, stop: int, x: float, y: float, yaw: f
     return _make_match(road, start + k, rev, x, y, e, a, d)
 
 
-def lateral_bound_ok(m: Match, pose_matrix: np.ndarray, width_m: float) -> bool:
-    """True when :func:`map_pose`'s L for this pose is surely at most ``width_m`` — decided without
-    building R_t. R_t shares the pose's pitch and roll, so L = |cos(roll)·l + sin(roll)·sin(pitch)·s|
-    with l, s the match's lateral and longitudinal offsets; the margin covers rounding."""
+def lateral_bound_ok(m: Match, pose_matrix: np.ndarray, width_m: float, centre_m: float = 0.0) -> bool:
+    """True when :func:`map_pose`'s signed lateral offset for this pose is surely within ``width_m`` of
+    ``centre_m`` (left positive) — decided without building R_t. R_t shares the pose's pitch and roll, so the
+    offset is cos(roll)·l + sin(roll)·sin(pitch)·s with l, s the match's lateral and longitudinal offsets; the
+    margin covers rounding."""
     pitch = math.asin(max(-1.0, min(1.0, -float(pose_matrix[2, 0]))))
     roll = math.atan2(float(pose_matrix[2, 1]), float(pose_matrix[2, 2]))
     lat = math.cos(roll) * m.signed_lateral_m + math.sin(roll) * math.sin(pitch) * m.longitudinal_m
-    return abs(lat) <= width_m - 1e-9 * (1.0 + width_m + abs(m.longitudinal_m))
+    return abs(lat - centre_m) <= width_m - 1e-9 * (1.0 + width_m + abs(m.longitudinal_m) + abs(centre_m))
 
 
 def _best(px: np.ndarray, py: np.ndarray, c: np.ndarray, s: np.ndarray, sign: np.ndarray, x: float, y: float,
