@@ -253,7 +253,7 @@ class MapAssociation:
         """Signed offset (m, left of the direction of travel positive) of the lane the vehicle keeps to from the
         matched road's centre line (``traffic_side``): on a two-way road the middle of its direction's
         max(1, lanes // 2) lanes, elsewhere 0."""
-        side = TrafficSide(self.cfg.traffic_side)  # (a string passed straight to FusionConfig counts too)
+        side = self.cfg.traffic_side
         if side is TrafficSide.none or m.is_join or self.road.two_way_sign.item(m.index) > 0:
             return 0.0
         half_m = max(1, m.lanes // 2) * 0.5 * self.cfg.lane_width_m

@@ -37,6 +37,19 @@ def param(
     )
 
 
+_ENUM_FIELDS: dict[str, tuple[tuple[str, type], ...]] = {}
+
+
+def _enum_fields(cls: type) -> tuple[tuple[str, type], ...]:
+    """(name, Enum class) of every field of the dataclass ``cls`` whose type is an Enum (worked out once)."""
+    key = f"{cls.__module__}.{cls.__qualname__}"
+    if key not in _ENUM_FIELDS:
+        hints = typing.get_type_hints(cls)
+        _ENUM_FIELDS[key] = tuple((f.name, hints[f.name]) for f in dataclasses.fields(cls)
+                                  if isinstance(hints[f.name], type) and issubclass(hints[f.name], enum.Enum))
+    return _ENUM_FIELDS[key]
+
+
 def _type_name(tp) -> str:
     return getattr(tp, "__name__", str(tp))
 
@@ -1244,6 +1257,12 @@ class FusionConfig:
     )
 
     def __post_init__(self) -> None:
+        # a mode given as its name ("band") is the mode: the engine compares modes by identity, and a string
+        # would silently take another branch
+        for name, tp in _enum_fields(type(self)):
+            value = getattr(self, name)
+            if not isinstance(value, tp):
+                object.__setattr__(self, name, _convert(value, tp, name, "FusionConfig"))
         if self.reloc_scale_min > self.reloc_scale_max:
             raise ConfigError(f"reloc_scale_min ({self.reloc_scale_min:g}) exceeds reloc_scale_max "
                               f"({self.reloc_scale_max:g})")

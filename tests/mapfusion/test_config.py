@@ -53,3 +53,23 @@ def test_no_number_field_takes_an_absurd_value():
             from_mapping(FusionConfig, {f.name: 1e308}, "t.toml")
         if f.metadata.get("max") is None:
             assert getattr(from_mapping(FusionConfig, {f.name: GENERIC_MAX}, "t.toml"), f.name) == GENERIC_MAX
+
+
+def test_a_mode_given_by_name_is_that_mode_and_a_wrong_name_is_refused():
+    import dataclasses
+    import enum
+
+    from mapfusion.config import PriorTarget, RoadTracking, TrafficSide
+    from mapfusion.errors import ConfigError
+
+    # the engine compares modes by identity: a name left as a string would silently take another branch
+    c = FusionConfig(prior_target="band", road_tracking="hmm", traffic_side="left")
+    assert c.prior_target is PriorTarget.band and c.road_tracking is RoadTracking.hmm
+    assert dataclasses.replace(c, traffic_side="none").traffic_side is TrafficSide.none
+    for f in dataclasses.fields(FusionConfig):
+        v = getattr(FusionConfig(), f.name)
+        if isinstance(v, enum.Enum):
+            for member in type(v):
+                assert getattr(FusionConfig(**{f.name: member.value}), f.name) is member
+    with pytest.raises(ConfigError, match="prior_target = 'sideways' is not one of centre, edge, band"):
+        FusionConfig(prior_target="sideways")
