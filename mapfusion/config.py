@@ -37,17 +37,16 @@ def param(
     )
 
 
-_ENUM_FIELDS: dict[str, tuple[tuple[str, type], ...]] = {}
+_ENUM_FIELDS: dict[type, tuple[tuple[str, type], ...]] = {}
 
 
 def _enum_fields(cls: type) -> tuple[tuple[str, type], ...]:
     """(name, Enum class) of every field of the dataclass ``cls`` whose type is an Enum (worked out once)."""
-    key = f"{cls.__module__}.{cls.__qualname__}"
-    if key not in _ENUM_FIELDS:
+    if cls not in _ENUM_FIELDS:
         hints = typing.get_type_hints(cls)
-        _ENUM_FIELDS[key] = tuple((f.name, hints[f.name]) for f in dataclasses.fields(cls)
+        _ENUM_FIELDS[cls] = tuple((f.name, hints[f.name]) for f in dataclasses.fields(cls)
                                   if isinstance(hints[f.name], type) and issubclass(hints[f.name], enum.Enum))
-    return _ENUM_FIELDS[key]
+    return _ENUM_FIELDS[cls]
 
 
 def _type_name(tp) -> str:
