@@ -752,6 +752,43 @@ class FusionConfig:
                                           "line the estimate still lies on it, for reloc_gps_fit_min.", unit="m",
                                           min=0.0, max=1000.0,
                                           source="issue 17: a tracked estimate strays a lane from OSM's centre line")
+    reloc_register_ratio: float = param(1.25, "With map_relocalisation: when GPS falls quiet (reloc_register_after_s)"
+                                        " where it left the estimate off the roads (reloc_gps_fit_min, or lost beside "
+                                        "GPS), its fixes "
+                                        "of the last reloc_register_m are first registered on the roads "
+                                        "(mapfusion.register: the shift within reloc_radius_m that puts them nearest "
+                                        "the way-points); the estimate is moved by that shift, without a search, when "
+                                        "the best shift farther than reloc_register_separation_m from it fits this "
+                                        "many times worse (RMS), the shift itself fits within reloc_register_rms_m "
+                                        "and it is longer than reloc_register_separation_m (0: off; a search as "
+                                        "before).", unit="1", min=0.0, max=100.0,
+                                        source="issue 17, session 30: the fix windows of the kidnapped seeds 1-10 "
+                                        "(offline, mapfusion.register): the 19 of 20 biased windows found within "
+                                        "3.4 m of their bias had ratios 1.35-3.38, the one found 246 m off 1.04")
+    reloc_register_after_s: float = param(2.0, "The fixes are registered (reloc_register_ratio) this long after the "
+                                          "last one, once per last fix: soon, for the odometry carries the estimate "
+                                          "from the last fix to the re-anchoring (a VO's heading wanders a few "
+                                          "degrees in 10 s: 26 m off at 25 m/s when measured).", unit="s", min=0.0,
+                                          max=3600.0, source="issue 17, session 30: kidnapped GPS bias Kotka s7")
+    reloc_register_place_m: float = param(150.0, "A decisive registration places the odometry on the last fixes, "
+                                          "shifted, by a rigid fit (as a GPS re-localisation does): those back from "
+                                          "the last one to the first that lies this far from it in a straight line "
+                                          "(a longer stretch bends with the VO's heading wander; a shorter one, or "
+                                          "a standstill, leaves the heading undetermined).", unit="m", min=1.0,
+                                          max=100000.0, source="issue 17, session 30: kidnapped GPS bias Kotka s7 "
+                                          "(25 m/s), 2 s after the last fix 7.1 m off with 10 s of fixes, 10.7 m with "
+                                          "60 s; Helsinki s9, 10 s of fixes at a standstill turned the estimate 138°")
+    reloc_register_m: float = param(1000.0, "Length of the fixes' path registered on the roads (reloc_register_ratio),"
+                                    " back from the last fix.", unit="m", min=1.0, max=100000.0,
+                                    source="issue 17: the kidnapped family's fix windows (120 s, 250-900 m)")
+    reloc_register_rms_m: float = param(4.0, "Largest RMS distance (each capped at 10 m) of the shifted fixes to "
+                                        "the roads' way-points for the registration to act.", unit="m", min=0.0,
+                                        max=10.0, source="issue 17: 2.1-3.0 m on the kidnapped seeds 1-10's windows "
+                                        "(GPS σ 2 m, vehicles 1.6 m right of the centre line)")
+    reloc_register_separation_m: float = param(30.0, "How far another shift must lie from the best to count as its "
+                                               "runner-up (reloc_register_ratio): nearer shifts are the same place.",
+                                               unit="m", min=1.0, max=10000.0,
+                                               source="issue 17: a few lane widths, under a block's length")
     reloc_mend_back: bool = param(True, "A map re-anchoring also moves the final estimates of the frames its search "
                                   "matched to the roads (from the search's first frame on), rigidly by the "
                                   "re-anchoring's correction; the online estimates stay as they were.",
@@ -930,6 +967,13 @@ class FusionConfig:
                                            "they wait for its answer: the search questions the very estimate they "
                                            "start around, and a re-anchoring restarts them).", source="issue 17: "
                                            "kidnapped runs")
+    road_fix_trust_fit: bool = param(True, "With map_relocalisation (which measures it): no road fix farther than "
+                                     "road_fix_agree_m from an estimate whose last reloc_gps_fit_m lay at least "
+                                     "reloc_gps_fit_min on a road — a path that keeps to the roads is not moved to a "
+                                     "look-alike the particles settled on far away (a lost one leaves the roads).",
+                                     source="issue 17, session 30: kidnapped GPS bias Helsinki s2 and s30, good "
+                                     "estimates moved 190-460 m by road fixes; seeds 1-10 / 11-20 ATE 40.38 / 50.33 "
+                                     "-> 37.31 / 50.30 m (with reloc_register_ratio)")
     road_fix_drift: float = param(0.1, "What the odometry may drift, as a fraction of the distance driven: the "
                                   "gate's allowance since its last answer, and a restart's radius (× 3) since the "
                                   "last fix (GPS's or a road fix).", min=0.0,

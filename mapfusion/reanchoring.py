@@ -45,6 +45,8 @@ class Reanchoring:
     _road_fixes: RoadFixes
     _jumps: JumpGuard
     _checked_fix_t: float
+    _register_checked_t: float
+    _registered_fix_t: float
     initialiser: Initialiser
     _pos_sigma: float
     _lat_sigma: float
@@ -61,6 +63,8 @@ class Reanchoring:
         self._map_anchor: tuple[int, Region] | None = None  # the last map re-anchoring: its frame, its search's region
         self._watch_last: Located | None = None  # the watched search's last answer (reloc_watch_m)
         self._beside_gps = False  # the running search began while GPS came (it has not acted yet)
+        self._register_checked_t = math.nan  # the last fix whose window was examined for registration on the roads
+        self._registered_fix_t = math.nan  # the last fix whose window the registration placed the estimate on
 
     def _restart_from(self, k: int, pose: gtsam.Pose3, noise, sigma_m: float) -> None:
         """The smoother afresh at frame k (a prior on ``pose``), the estimate's σ set, the road association

@@ -2,7 +2,9 @@
 :class:`~mapfusion.engine.MapFusion`, kept apart to keep it small): a search begun after an odometry gap,
 when the association calls the estimate lost or when GPS falls silent, run beside GPS when the estimate is
 lost while fixes still come, its answer re-anchoring the smoother (unless the posterior has not ruled the
-estimate's own place out), and the re-anchoring search watched on for a while after it acts."""
+estimate's own place out), and the re-anchoring search watched on for a while after it acts. When GPS falls
+silent where it left the estimate off the roads, its last fixes are first registered on the roads
+(:mod:`~mapfusion.register`): a decisive shift re-anchors the estimate at once, without a search."""
 
 from __future__ import annotations
 
@@ -12,17 +14,16 @@ import math
 import gtsam
 import numpy as np
 
-from . import factors
-from .config import OutageStep, StateModel
+from .config import OutageStep
 from .geometry import cumulative_length
-from .reanchoring import Reanchoring
+from .registering import FixRegistering
 from .relocalise import Guess, Located, Region, Relocaliser, enclosing_disc
 from .track import planar_of
 
 log = logging.getLogger(__name__)
 
 
-class MapSearching(Reanchoring):
+class MapSearching(FixRegistering):
     """Searching the road network for a lost estimate: mixed into MapFusion, whose state it reads."""
 
     def _search_when_lost(self, k: int, pred: gtsam.Pose3) -> None:
@@ -32,6 +33,9 @@ class MapSearching(Reanchoring):
             return
         assoc, search = self._association, self._search
         fixes = self.initialiser.fixes
+        if self._register_due(k) and self._register_fixes(k, pred):  # the fixes' own shape placed on the roads
+            search.active, search.watching, self._beside_gps = None, None, False
+            return
         if fixes and self.track.t[k] - fixes[-1][0] < self.cfg.reloc_after_gps_s:
             search.watching = None  # (GPS is back: it places the estimate)
             self._search_beside_gps(k, pred)  # GPS is here: it places the estimate, not a search of the map
@@ -55,8 +59,9 @@ class MapSearching(Reanchoring):
             if search.active is None:  # (a running search goes on: its particles know more than a new one's)
                 x, y = assoc.explained_xy or (pred.x(), pred.y())
                 search.begin(self._doubting(k, search.lost_region(x, y, assoc.unexplained_m)), frame=k)
-        elif search.active is None and self._gps_went_silent(k) and self._gps_left_it_off_the_roads(k):
-            self._search_since_gps(k, pred)  # a second opinion on where GPS left it
+        elif search.active is None and self._gps_went_silent(k) and self._registered_fix_t != fixes[-1][0] \
+                and self._gps_left_it_off_the_roads(k):
+            self._search_since_gps(k, pred)  # a second opinion on where GPS left it (the fixes not placed already)
         search.widen_if_stuck(pred.x(), pred.y(), k)
         if search.active is None:
             if search.watching is not None:
@@ -108,27 +113,6 @@ class MapSearching(Reanchoring):
         assert active is not None
         for j in range(k0, k):
             active.add(*self._search_pose(j, active), j)
-
-    def _replay_start(self, k: int, distance_m: float) -> int:
-        """The frame ``distance_m`` of driving before frame k (metres at the engine's scale), or the earliest one
-        after which every frame has an online estimate, no odometry gap (longer than ``reloc_gap_s``) intervenes and
-        no map re-anchoring moved the estimate (the online estimates before it are where the engine then thought)."""
-        track = self.track
-        if distance_m <= 0 or self.alignment is None:
-            return k
-        scale, driven = self.alignment.scale, 0.0
-        floor = max(track.first, self._map_anchor[0] if self._map_anchor is not None else 0)
-        x1, y1, _ = planar_of(track.raw[k])
-        j = k
-        while j - 1 >= floor and track.online[j - 1] is not None \
-                and track.t[j] - track.t[j - 1] <= self.cfg.reloc_gap_s:
-            x0, y0, _ = planar_of(track.raw[j - 1])
-            driven += math.hypot(x1 - x0, y1 - y0) * scale
-            x1, y1 = x0, y0
-            j -= 1
-            if driven >= distance_m:
-                break
-        return j
 
     def _search_pose(self, k: int, search: Relocaliser) -> tuple[float, float, float]:
         """Frame k's planar odometry pose for ``search`` (x and y in metres, yaw), at the scale the search was first
@@ -193,42 +177,13 @@ class MapSearching(Reanchoring):
     def _map_reanchor(self, k: int, pred: gtsam.Pose3, loc: Located, active: Relocaliser) -> None:
         """Re-anchor the smoother at frame k on a search's answer (counted, logged, the searched path mended), and
         watch that search on from there (``reloc_watch_m``)."""
-        self._map_anchor = (k, active.region)
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
-        sigma_m = max(loc.spread_m, 2.0)
-        sigmas = factors.pose_sigmas(StateModel.planar, max(loc.yaw_spread_rad, math.radians(2.0)), sigma_m)
-        self._restart_from(k, pose, factors.diagonal(sigmas), sigma_m)
-        if self.cfg.reloc_mend_back:
-            self._mend_searched(active.k0 if active.k0 is not None else k, k, pred, pose)
-        self.counters.map_relocalisations += 1
-        self.relocalised_at.append((self.track.t[k], loc.driven_m))
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
                  math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
-        self._update()
+        self._reanchor_on_map(k, pred, pose, max(loc.spread_m, 2.0), max(loc.yaw_spread_rad, math.radians(2.0)),
+                              active.k0 if active.k0 is not None else k, active.region, loc.driven_m)
         self._search.watch(active)
         self._watch_last = loc
-
-    def _mend_searched(self, k0: int, k1: int, was: gtsam.Pose3, now: gtsam.Pose3) -> None:
-        """A map re-anchoring moved frame k1 from ``was`` to ``now``; its search matched the odometry's path from
-        frame k0 on to the roads, so that path lies where the re-anchoring puts its end: the final estimates of
-        frames k0 … k1-1 are moved rigidly by the same correction (about z). The online estimates stay as they
-        were (causal)."""
-        sm, track = self._smoother, self.track
-        assert sm is not None
-        k0 = max(k0, track.first)
-        dyaw = math.remainder(now.rotation().yaw() - was.rotation().yaw(), 2.0 * math.pi)
-        c, s = math.cos(dyaw), math.sin(dyaw)
-        turn = gtsam.Rot3.Yaw(dyaw)
-        moved = 0
-        for j in range(k0, k1):
-            p = sm.smoothed.get(j)
-            if p is None:
-                continue
-            dx, dy = p.x() - was.x(), p.y() - was.y()
-            sm.smoothed[j] = gtsam.Pose3(turn.compose(p.rotation()),
-                                         gtsam.Point3(now.x() + c * dx - s * dy, now.y() + s * dx + c * dy, p.z()))
-            moved += 1
-        log.info("t=%.1f s: the map's correction moved the %d frames its search matched", track.t[k1], moved)
 
     def _search_beside_gps(self, k: int, pred: gtsam.Pose3) -> None:
         """While GPS comes: no search unless the estimate is lost (``reloc_under_gps``); then one runs, fed but

@@ -36,6 +36,7 @@ import numpy as np
 
 from . import factors
 from .config import FusionConfig
+from .association import MapAssociation
 from .counters import Counters
 from .relocalise import Located, Region, RoadParticles, Search
 from .roadmap import RoadMap
@@ -81,6 +82,7 @@ class RoadFixes:
         self._ref_pending = False  # the reference's estimate is taken at the next frame (after the fix's update)
         self._after_reanchoring = False  # the next start follows a re-anchoring: it waits for a steady heading
         self._pending: tuple[float, float, float] | None = None  # odometry pose a start's steadiness is measured from
+        self._on_roads = False  # this frame's estimate kept to the roads lately (road_fix_trust_fit)
         self._ref_slack_m = 0.0  # how far from the reference an answer may lie besides drift (the start's radius)
 
     def gps_used(self, t: float) -> None:
@@ -103,11 +105,13 @@ class RoadFixes:
         self._pending = None
 
     def step(self, k: int, t: float, raw_xy_yaw: tuple[float, float, float], scale: float, pred: gtsam.Pose3,
-             sigma_m: float) -> gtsam.NonlinearFactor | None:
+             sigma_m: float, on_roads: bool = False) -> gtsam.NonlinearFactor | None:
         """Frame k at time t: the odometry's raw planar pose (its own units and frame), the estimate's scale
-        (metres per odometry unit), the predicted pose and its positional σ (m). Returns a fix on frame k, or
+        (metres per odometry unit), the predicted pose and its positional σ (m); ``on_roads``: the estimate's
+        recent path lay on the roads (``road_fix_trust_fit``: no fix far from it). Returns a fix on frame k, or
         None."""
         cfg = self.cfg
+        self._on_roads = on_roads
         silent = t - self.last_gps_t >= cfg.road_fix_after_gps_s
         if not (self.enabled and silent and math.isfinite(scale) and scale > 0):
             return None
@@ -180,6 +184,8 @@ class RoadFixes:
         estimate: they preferred another place without ruling its own out."""
         cfg = self.cfg
         if math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) > cfg.road_fix_agree_m:
+            if self._on_roads:  # (a path that kept to the roads is not moved to a look-alike far away)
+                return True
             return self._rival_mass(loc, pred) >= cfg.road_fix_rival_mass > 0  # (far: unless they still hold it)
         m = self.road.match(pred.x(), pred.y(), pred.rotation().yaw(), cfg.search_radius_m, cfg.angle_weight_m_per_deg)
         return (m is not None and m.lateral_m <= cfg.road_fix_agree_widths * m.lanes * cfg.lane_width_m
@@ -244,6 +250,7 @@ class RoadFixing:
     _pos_sigma: float
     _smoother: Smoother | None
     _search: Search
+    _association: MapAssociation
 
     def _road_fix(self, k: int, pred: gtsam.Pose3) -> bool:
         """The road particles' fix on frame k while GPS is silent; True if added. Each fix also moves the
@@ -255,7 +262,9 @@ class RoadFixing:
             rf.drop()  # (they start afresh around the estimate the search leaves)
             return False
         assert self.alignment is not None and self._smoother is not None
-        fix = rf.step(k, self.track.t[k], planar_of(self.track.raw[k]), self.alignment.scale, pred, self._pos_sigma)
+        fit = self._association.road_fit() if self.cfg.road_fix_trust_fit and self.cfg.map_relocalisation else None
+        fix = rf.step(k, self.track.t[k], planar_of(self.track.raw[k]), self.alignment.scale, pred, self._pos_sigma,
+                      on_roads=fit is not None and fit >= self.cfg.reloc_gps_fit_min)
         if fix is None:
             return False
         self._smoother.add(fix)

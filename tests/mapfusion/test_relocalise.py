@@ -342,10 +342,12 @@ def test_no_search_acts_while_gps_comes(road):
 
 def _biased_window(road, seed: int, under_gps: bool, fixes_until_k: int):
     """A drive whose 70 s of fixes all lie 150 m off; the silence's search is begun at the silence (no replay of the
-    path under GPS, reloc_gps_replay_m 0), so that what the tests using it see is the search beside GPS alone."""
+    path under GPS, reloc_gps_replay_m 0) and the fixes are not registered on the roads first (reloc_register_ratio
+    0: test_register.py), so that what the tests using it see is the search beside GPS alone."""
     x, y, yaw, _ = graph_route(road, seed, 2400.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
-    cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_under_gps=under_gps, reloc_gps_replay_m=0.0)
+    cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_under_gps=under_gps, reloc_gps_replay_m=0.0,
+                       reloc_register_ratio=0.0)
     return _feed(road, cfg, x, y, ox, oy, oyaw, fixes_until_k, fix_offset=(106.0, 106.0))
 
 
@@ -373,7 +375,8 @@ def test_a_search_begun_back_under_a_biased_gps_re_anchors_at_the_silence(road):
     against 101.1 / 110.3 / 105.3 / 98.9 s begun at the silence; each ending within 7 m of the truth either way).
     reloc_gps_fit_min is off here: route 7's biased fixes leave the estimate on parallel streets for most of the
     last 300 m, so by default GPS's silence begins no search there (the estimate is called lost later instead:
-    first re-anchoring at 153.8 s)."""
+    first re-anchoring at 153.8 s). The fixes are not registered on the roads first (reloc_register_ratio 0: that
+    would re-anchor at the silence without a search, test_register.py)."""
     last_fix_s = 69.0
     at_silence = 0
     for seed in (6, 7, 8, 9):
@@ -382,7 +385,7 @@ def test_a_search_begun_back_under_a_biased_gps_re_anchors_at_the_silence(road):
         times = []
         for replay_m in (0.0, 250.0):
             cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_gps_replay_m=replay_m,
-                               reloc_gps_fit_min=0.0)
+                               reloc_gps_fit_min=0.0, reloc_register_ratio=0.0)
             eng, err = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0))
             assert eng.relocalised_at and err < 15.0, (seed, replay_m, err)
             times.append(eng.relocalised_at[0][0])
@@ -396,11 +399,13 @@ def test_a_map_re_anchoring_mends_the_path_its_search_matched(road):
     """The same biased window: with reloc_mend_back the final estimates of the frames the search matched (from
     its start to the re-anchoring) are moved with the re-anchoring, so they lie near the truth; without, they
     keep GPS's 150 m bias (median over the last 15 s before it, measured: 0.5 m against 147.9 m). The online
-    estimates are causal: the same either way."""
+    estimates are causal: the same either way. (The fixes are not registered on the roads first,
+    reloc_register_ratio 0: that re-anchoring reaches back to its fixes and re-estimates the frames since,
+    test_register.py.)"""
     def final_errors(mend: bool):
         x, y, yaw, _ = graph_route(road, 3, 2400.0)
         ox, oy, oyaw = drifting_odometry(x, y, yaw, 3, heading_rad=0.3, noise_m=0.02)
-        cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_mend_back=mend)
+        cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_mend_back=mend, reloc_register_ratio=0.0)
         eng, _ = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0))
         traj = eng.trajectory()
         t_found = eng.relocalised_at[0][0]
@@ -742,11 +747,13 @@ def test_gps_that_left_the_estimate_on_the_roads_gets_no_second_opinion(road):
     """reloc_gps_fit_min: 70 s of good fixes leave the estimate on the roads, so GPS's silence begins no search
     (which could only confirm it or, converging on a look-alike path, move it away: held-out 60-run set, Helsinki
     clear s14, 3.9 -> 168 m when measured); the same drive with every fix 150 m off leaves it off the roads and
-    the search begins and re-anchors; with the measure off (0) the good drive is searched again."""
+    the search begins and re-anchors; with the measure off (0) the good drive is searched again. (The fixes are not
+    registered on the roads first, reloc_register_ratio 0: that would re-anchor the biased drive without a search,
+    test_register.py.)"""
     seed = 6
     x, y, yaw, _ = graph_route(road, seed, 2400.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
-    cfg = FusionConfig(map_relocalisation=True, road_fixes=False)
+    cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_register_ratio=0.0)
     good, err_good = _feed(road, cfg, x, y, ox, oy, oyaw, 700)
     assert good._search.searches == 0 and good.counters.map_relocalisations == 0
     assert err_good < 15.0

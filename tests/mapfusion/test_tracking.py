@@ -139,11 +139,13 @@ def test_particles_without_a_confident_answer_start_again_around_the_estimate(ro
 
 
 @settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 10_000), rival=st.floats(0.0, 0.5), threshold=st.sampled_from([0.0, 0.05, 0.2]))
-def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road, seed, rival, threshold):
+@given(seed=st.integers(0, 10_000), rival=st.floats(0.0, 0.5), threshold=st.sampled_from([0.0, 0.05, 0.2]),
+       on_roads=st.booleans())
+def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road, seed, rival, threshold, on_roads):
     """An answer farther than road_fix_agree_m from the estimate is a fix only when the particles have ruled the
     estimate's place out: their posterior mass near the estimate (outside the answer's own disc) is under
-    road_fix_rival_mass (0: always a fix)."""
+    road_fix_rival_mass (0: always a fix). And never while the estimate's recent path kept to the roads
+    (road_fix_trust_fit: the step's ``on_roads``)."""
     from mapfusion.relocalise import Located, RoadParticles
 
     cfg = dataclasses.replace(ON, road_fix_rival_mass=threshold)
@@ -167,8 +169,9 @@ def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road
     xj, yj = (float(v) for v in road.xy_m[j])
     loc = Located(xj, yj, 0.0, 0.0, int(road.edge[j]), 1, float(road.s_m[j]), 1.0 - rival, 1.0, 0.0, 100.0)
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(float(road.xy_m[i, 0]), float(road.xy_m[i, 1]), 0.0))
+    fixes._on_roads = on_roads
     held = fixes._agrees(loc, pred)
-    assert held == (threshold > 0 and rival >= threshold - 1e-9) or abs(rival - threshold) < 1e-6
+    assert held == (on_roads or threshold > 0 and rival >= threshold - 1e-9) or abs(rival - threshold) < 1e-6
 
 
 @settings(max_examples=20, deadline=None)
@@ -266,3 +269,16 @@ def test_road_fixes_wait_while_a_search_runs(road):
         seen[waits] = (during, after, searched)
     assert seen[True][2] > 0 and seen[True][0] == 0 and seen[True][1] > 0, seen
     assert seen[False][0] > 0, seen
+
+
+@pytest.mark.parametrize("relocalise,trust", [(True, True), (True, False), (False, True)])
+def test_the_road_fixes_hear_that_the_path_kept_to_the_roads_only_where_it_is_measured(road, relocalise, trust):
+    """road_fix_trust_fit: the engine tells the road fixes whether the estimate's last reloc_gps_fit_m lay on the
+    roads — measured by the association only with map_relocalisation, so without it (or with the option off) they
+    never hear it. A drive tracked on Helsinki's roads after its GPS ends: at its end the path kept to the roads."""
+    x, y, yaw, _ = graph_route(road, 3, 1500.0)
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, 3, heading_rad=0.7, noise_m=0.02)
+    cfg = dataclasses.replace(ON, map_relocalisation=relocalise, road_fix_trust_fit=trust)
+    eng, _, err = _run(road, cfg, x, y, ox, oy, oyaw, 400)
+    assert err < 15.0, err
+    assert eng._road_fixes._on_roads == (relocalise and trust)
