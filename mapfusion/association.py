@@ -140,6 +140,12 @@ class MapAssociation:
             return None
         return min(max(self._fit_on_m / self._fit_m, 0.0), 1.0)
 
+    def kept_to_roads(self) -> bool:
+        """At least ``reloc_gps_fit_min`` of the estimate's last ``reloc_gps_fit_m`` lay on a road (False where the
+        share is not measured: before any driving, or with ``map_relocalisation`` or ``reloc_gps_fit_min`` off)."""
+        fit = self.road_fit()
+        return self.cfg.reloc_gps_fit_min > 0 and fit is not None and fit >= self.cfg.reloc_gps_fit_min
+
     @property
     def unexplained_m(self) -> float:
         """Odometry distance since a road last explained the estimate."""

@@ -35,8 +35,7 @@ class FixRegistering(Reanchoring):
                 or self.track.t[k] - fixes[-1][0] < cfg.reloc_register_after_s:
             return False
         self._register_checked_t = fixes[-1][0]
-        fit = self._association.road_fit()
-        return self._beside_gps or cfg.reloc_gps_fit_min <= 0 or fit is None or fit < cfg.reloc_gps_fit_min
+        return self._beside_gps or not self._association.kept_to_roads()
 
     def _register_fixes(self, k: int, pred: gtsam.Pose3) -> bool:
         """GPS has fallen silent where it left the estimate off the roads: its fixes of the last ``reloc_register_m``

@@ -92,12 +92,11 @@ class MapSearching(FixRegistering):
         ``reloc_gps_fit_min`` of the estimate's last ``reloc_gps_fit_m`` lay on a road: fixes that share one bias
         place the path off the roads most of the way, good ones on them (a search around a good estimate can only
         confirm it, or, converging on a look-alike path, move it away)."""
-        fit_min = self.cfg.reloc_gps_fit_min
-        fit = self._association.road_fit()
-        if fit_min <= 0 or fit is None or fit < fit_min:
+        assoc = self._association
+        if not assoc.kept_to_roads():
             return True
         log.info("t=%.1f s: GPS silent, %.0f%% of the estimate's last %.0f m on a road: no search", self.track.t[k],
-                 100 * fit, self.cfg.reloc_gps_fit_m)
+                 100 * (assoc.road_fit() or 0.0), self.cfg.reloc_gps_fit_m)
         return False
 
     def _search_since_gps(self, k: int, pred: gtsam.Pose3) -> None:

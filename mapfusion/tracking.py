@@ -35,8 +35,8 @@ import gtsam
 import numpy as np
 
 from . import factors
-from .config import FusionConfig
 from .association import MapAssociation
+from .config import FusionConfig
 from .counters import Counters
 from .relocalise import Located, Region, RoadParticles, Search
 from .roadmap import RoadMap
@@ -262,9 +262,9 @@ class RoadFixing:
             rf.drop()  # (they start afresh around the estimate the search leaves)
             return False
         assert self.alignment is not None and self._smoother is not None
-        fit = self._association.road_fit() if self.cfg.road_fix_trust_fit and self.cfg.map_relocalisation else None
+        on_roads = self.cfg.road_fix_trust_fit and self.cfg.map_relocalisation and self._association.kept_to_roads()
         fix = rf.step(k, self.track.t[k], planar_of(self.track.raw[k]), self.alignment.scale, pred, self._pos_sigma,
-                      on_roads=fit is not None and fit >= self.cfg.reloc_gps_fit_min)
+                      on_roads=on_roads)
         if fix is None:
             return False
         self._smoother.add(fix)
