@@ -863,6 +863,14 @@ class FusionConfig:
         source="issue 17 (kidnapped VO jumps: carried steps 2–50 m off in most runs, while a uniform search took "
                "600–1,000 m of Kotka's long roads to converge)",
     )
+    reloc_gap_guess_along: bool = param(
+        True,
+        "The gap's guess (reloc_gap_guess_floor) is the whole carried step, from where the odometry stopped to where "
+        "the last velocity carries it: its Gaussian is in the distance to that segment, since a vehicle may have "
+        "slowed or stopped in the gap; false: the carried step's end only.",
+        source="issue 17 (kidnapped VO jumps, seeds 1–10: a vehicle that stopped at a light in the gap moved 18 m of "
+               "the 65 m carried, and the search took 574 m)",
+    )
     reloc_kld_epsilon: float = param(0.0, "Adaptive particle count (KLD-sampling, Fox 2003): at each resampling as "
                                      "many particles as bound the posterior's error by this (Kullback-Leibler "
                                      "divergence, 99% confidence) over the bins it occupies, at most the count the "
@@ -974,6 +982,14 @@ class FusionConfig:
                                      source="issue 17, session 30: kidnapped GPS bias Helsinki s2 and s30, good "
                                      "estimates moved 190-460 m by road fixes; seeds 1-10 / 11-20 ATE 40.38 / 50.33 "
                                      "-> 37.31 / 50.30 m (with reloc_register_ratio)")
+    road_fix_near_only: bool = param(
+        True,
+        "With map_relocalisation: no road fix farther than road_fix_agree_m from the estimate at all. Moving an "
+        "estimate far is a re-localisation, and the search makes those with its own checks (a converged posterior, "
+        "no rival left at the estimate); road fixes keep a tracked estimate on its road.",
+        source="issue 17, session 31: kidnapped VO jump Helsinki s1, an estimate 9 m off moved 150-210 m by road "
+               "particles restarted 218 m around it that settled on a look-alike",
+    )
     road_fix_drift: float = param(0.1, "What the odometry may drift, as a fraction of the distance driven: the "
                                   "gate's allowance since its last answer, and a restart's radius (× 3) since the "
                                   "last fix (GPS's or a road fix).", min=0.0,

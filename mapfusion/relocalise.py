@@ -67,7 +67,8 @@ class Region:
 class Guess:
     """The engine's own guess of the pose as a search begins (after an odometry gap: the step carried along the
     road): a soft prior on the search's first particles, ``floor`` + (1 − floor) × a Gaussian in position (σ m)
-    and heading (σ rad), so that places the guess rules out keep ``floor`` of its weight."""
+    and heading (σ rad), so that places the guess rules out keep ``floor`` of its weight. With ``from_xy_m`` the
+    position is anywhere on the segment from there to (``x_m``, ``y_m``): the Gaussian is in the distance to it."""
 
     x_m: float
     y_m: float
@@ -75,6 +76,7 @@ class Guess:
     yaw_rad: float
     yaw_sigma_rad: float
     floor: float
+    from_xy_m: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -416,13 +418,24 @@ class RoadFollower(RoadParticles):
 def guess_log_weights(guess: Guess, xy_m: np.ndarray, heading_rad: np.ndarray) -> np.ndarray:
     """Normalised log-weights of particles at ``xy_m`` (n × 2, m) heading ``heading_rad`` (their roads' headings
     in their directions) under ``guess``: log(floor + (1 − floor) × exp(−½ (d²/σ² + a²/σ_yaw²))), normalised."""
-    d2 = ((xy_m[:, 0] - guess.x_m) ** 2 + (xy_m[:, 1] - guess.y_m) ** 2) / (guess.sigma_m * guess.sigma_m)
+    d2 = _to_segment_sq(xy_m, guess.from_xy_m or (guess.x_m, guess.y_m), (guess.x_m, guess.y_m)) \
+        / (guess.sigma_m * guess.sigma_m)
     a2 = (wrap_angle(heading_rad - guess.yaw_rad) / guess.yaw_sigma_rad) ** 2
     with np.errstate(divide="ignore"):  # (a floor of 0 or 1: one of the two terms is log 0)
         logw = np.logaddexp(math.log(guess.floor) if guess.floor > 0 else -np.inf,
                             (math.log1p(-guess.floor) if guess.floor < 1 else -np.inf) - 0.5 * (d2 + a2))
     top = float(logw.max())  # (in logs: with no floor, a guess far from every particle would underflow)
     return logw - (top + math.log(float(np.exp(logw - top).sum())))
+
+
+def _to_segment_sq(xy_m: np.ndarray, a: tuple[float, float], b: tuple[float, float]) -> np.ndarray:
+    """Squared distances (m²) of the points ``xy_m`` (n × 2) to the segment from ``a`` to ``b`` (a point if equal)."""
+    ab = np.subtract(b, a)
+    rel = xy_m - np.asarray(a)
+    den = float(ab @ ab)
+    u = np.clip(rel @ ab / den, 0.0, 1.0) if den > 0 else np.zeros(len(xy_m))
+    off = rel - u[:, None] * ab
+    return np.einsum("ij,ij->i", off, off)
 
 
 @dataclass(frozen=True)

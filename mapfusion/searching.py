@@ -85,7 +85,8 @@ class MapSearching(FixRegistering):
             return None
         length_m = math.hypot(pred.x() - prev.x(), pred.y() - prev.y())
         return Guess(pred.x(), pred.y(), self._carried_sigma_m(length_m),
-                     pred.rotation().yaw(), math.radians(cfg.outage_rot_sigma_deg), cfg.reloc_gap_guess_floor)
+                     pred.rotation().yaw(), math.radians(cfg.outage_rot_sigma_deg), cfg.reloc_gap_guess_floor,
+                     (prev.x(), prev.y()) if cfg.reloc_gap_guess_along else None)
 
     def _gps_left_it_off_the_roads(self, k: int) -> bool:
         """GPS has fallen silent: does where it left the estimate need a second opinion? Only when less than

@@ -82,7 +82,7 @@ class RoadFixes:
         self._ref_pending = False  # the reference's estimate is taken at the next frame (after the fix's update)
         self._after_reanchoring = False  # the next start follows a re-anchoring: it waits for a steady heading
         self._pending: tuple[float, float, float] | None = None  # odometry pose a start's steadiness is measured from
-        self._on_roads = False  # this frame's estimate kept to the roads lately (road_fix_trust_fit)
+        self._near_only = False  # this frame: no fix far from the estimate (road_fix_near_only, road_fix_trust_fit)
         self._ref_slack_m = 0.0  # how far from the reference an answer may lie besides drift (the start's radius)
 
     def gps_used(self, t: float) -> None:
@@ -105,13 +105,13 @@ class RoadFixes:
         self._pending = None
 
     def step(self, k: int, t: float, raw_xy_yaw: tuple[float, float, float], scale: float, pred: gtsam.Pose3,
-             sigma_m: float, on_roads: bool = False) -> gtsam.NonlinearFactor | None:
+             sigma_m: float, near_only: bool = False) -> gtsam.NonlinearFactor | None:
         """Frame k at time t: the odometry's raw planar pose (its own units and frame), the estimate's scale
-        (metres per odometry unit), the predicted pose and its positional σ (m); ``on_roads``: the estimate's
-        recent path lay on the roads (``road_fix_trust_fit``: no fix far from it). Returns a fix on frame k, or
-        None."""
+        (metres per odometry unit), the predicted pose and its positional σ (m); ``near_only``: no fix farther
+        than ``road_fix_agree_m`` from the estimate (``road_fix_near_only``, ``road_fix_trust_fit``). Returns a fix
+        on frame k, or None."""
         cfg = self.cfg
-        self._on_roads = on_roads
+        self._near_only = near_only
         silent = t - self.last_gps_t >= cfg.road_fix_after_gps_s
         if not (self.enabled and silent and math.isfinite(scale) and scale > 0):
             return None
@@ -184,7 +184,7 @@ class RoadFixes:
         estimate: they preferred another place without ruling its own out."""
         cfg = self.cfg
         if math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) > cfg.road_fix_agree_m:
-            if self._on_roads:  # (a path that kept to the roads is not moved to a look-alike far away)
+            if self._near_only:  # (far answers are the search's, or the path kept to the roads: not moved far)
                 return True
             return self._rival_mass(loc, pred) >= cfg.road_fix_rival_mass > 0  # (far: unless they still hold it)
         m = self.road.match(pred.x(), pred.y(), pred.rotation().yaw(), cfg.search_radius_m, cfg.angle_weight_m_per_deg)
@@ -262,9 +262,11 @@ class RoadFixing:
             rf.drop()  # (they start afresh around the estimate the search leaves)
             return False
         assert self.alignment is not None and self._smoother is not None
-        on_roads = self.cfg.road_fix_trust_fit and self.cfg.map_relocalisation and self._association.kept_to_roads()
+        cfg = self.cfg
+        near_only = cfg.map_relocalisation and (cfg.road_fix_near_only or cfg.road_fix_trust_fit
+                                                and self._association.kept_to_roads())
         fix = rf.step(k, self.track.t[k], planar_of(self.track.raw[k]), self.alignment.scale, pred, self._pos_sigma,
-                      on_roads=on_roads)
+                      near_only=near_only)
         if fix is None:
             return False
         self._smoother.add(fix)

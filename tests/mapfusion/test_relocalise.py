@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 
 from mapfusion import FusionConfig, RoadMap
 from mapfusion.config import OutageStep
-from mapfusion.relocalise import Guess, Region, Relocaliser, RoadFollower, RoadParticles, Search, _edge_travel
+from mapfusion.relocalise import Guess, Region, Relocaliser, RoadFollower, RoadParticles, Search, _edge_travel, \
+    guess_log_weights
 from mapfusion.roadmap import can_drive
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
@@ -841,13 +842,13 @@ def twin_ells(tmp_path_factory):
     return road, road.xy_m[i] - np.array([500.0, 0.0])
 
 
-def _ell_search(twin_ells, guess_floor: float | None, seed: int):
+def _ell_search(twin_ells, guess_floor: float | None, seed: int, guess: Guess | None = None):
     """A search over both L's from 100 m along the first, fed that L's drive (400 m east, 200 m north, in the
     odometry's own frame: a start heading of 30°); with ``guess_floor``, weighted by a guess 20 m behind the
-    true start (σ 60 m, 20°). Returns the converged answer's distance from the truth (m) or None."""
+    true start (σ 60 m, 20°), or by ``guess``. Returns the converged answer's distance from the truth (m) or None."""
     road, (ox, oy) = twin_ells
-    guess = None if guess_floor is None else \
-        Guess(ox + 80.0, oy, 60.0, 0.0, math.radians(20.0), guess_floor)
+    if guess_floor is not None:
+        guess = Guess(ox + 80.0, oy, 60.0, 0.0, math.radians(20.0), guess_floor)
     reloc = Relocaliser(road, CFG, Region(ox - 250.0, oy - 100.0, 800.0), seed, guess=guess)
     c, s = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
     path = [(100.0 + d, 0.0, 0.0) for d in range(0, 400)] + [(500.0, float(d), math.pi / 2) for d in range(0, 201)]
@@ -867,6 +868,55 @@ def test_the_gaps_guess_tells_apart_places_the_roads_shape_cannot(twin_ells, see
     assert _ell_search(twin_ells, 1.0, seed) is None
     err = _ell_search(twin_ells, 0.05, seed)
     assert err is not None and err < 10.0, err
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_gap_s_guess_spanning_the_carried_step_finds_a_vehicle_that_stopped_in_the_gap(twin_ells, seed):
+    """The vehicle braked to a stop at the gap's start (95 m along the first L, stopped at 100 m) while the engine
+    carried its last velocity 65 m on, to 160 m: the guess at the carried step's end alone weighs the truth, 2.9 σ
+    away, about as little as the other L, and the search never holds 80% in one place; spanning the whole carried
+    step (``reloc_gap_guess_along``), it finds the right L within 10 m."""
+    road, (ox, oy) = twin_ells
+    sigma_m = CFG.reloc_sigma_m + CFG.outage_step_fraction * 65.0  # (the engine's σ for a 65 m carried step)
+    end_only = Guess(ox + 160.0, oy, sigma_m, 0.0, math.radians(20.0), 0.05)
+    spanning = dataclasses.replace(end_only, from_xy_m=(ox + 95.0, oy))
+    assert _ell_search(twin_ells, None, seed, guess=end_only) is None
+    err = _ell_search(twin_ells, None, seed, guess=spanning)
+    assert err is not None and err < 10.0, err
+
+
+_coord = st.floats(-500.0, 500.0)
+
+
+@settings(max_examples=50, deadline=None)
+@given(a=st.tuples(_coord, _coord), b=st.tuples(_coord, _coord), sigma_m=st.floats(2.0, 100.0),
+       floor=st.floats(0.0, 0.5), points=st.lists(st.tuples(_coord, _coord), min_size=2, max_size=30))
+def test_a_guess_along_a_segment_weighs_by_the_distance_to_it(a, b, sigma_m, floor, points):
+    """A guess spanning the carried step (``from_xy_m``): each weight is the point guess's law in the distance to the
+    segment, measured here by brute force on 4,001 points along it; every point on the segment weighs the most;
+    a segment of zero length is the point guess."""
+    xy = np.array(points + [a, b, ((a[0] + b[0]) / 2, (a[1] + b[1]) / 2)])
+    heading = np.zeros(len(xy))
+    guess = Guess(b[0], b[1], sigma_m, 0.0, 1.0, floor, from_xy_m=a)
+    got = guess_log_weights(guess, xy, heading)
+    u = np.linspace(0.0, 1.0, 4001)[:, None]
+    line = np.asarray(a) + u * (np.asarray(b) - np.asarray(a))
+    d2 = np.min(((xy[:, None, :] - line[None, :, :]) ** 2).sum(axis=2), axis=1)
+    d_m = np.sqrt(d2)
+    step_m = math.dist(a, b) / 4000  # (the brute force's own spacing: the true distance lies within it)
+
+    def law(dist_m):
+        with np.errstate(divide="ignore"):
+            return np.logaddexp(math.log(floor) if floor > 0 else -np.inf,
+                                math.log1p(-floor) - 0.5 * (dist_m / sigma_m) ** 2)
+
+    rel = got - got[-3]  # (normalised: compare against the segment's own end, which lies on it)
+    assert np.all(rel >= law(d_m) - 1e-9)
+    assert np.all(rel <= law(np.maximum(d_m - step_m, 0.0)) + 1e-9)
+    assert np.allclose(got[-3:], got[-3], atol=1e-9)  # both ends and the middle: on the segment
+    point = guess_log_weights(Guess(b[0], b[1], sigma_m, 0.0, 1.0, floor, from_xy_m=b), xy, heading)
+    alone = guess_log_weights(Guess(b[0], b[1], sigma_m, 0.0, 1.0, floor), xy, heading)
+    assert np.allclose(point, alone, atol=1e-12)
 
 
 @settings(max_examples=25, deadline=None)

@@ -140,12 +140,12 @@ def test_particles_without_a_confident_answer_start_again_around_the_estimate(ro
 
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 10_000), rival=st.floats(0.0, 0.5), threshold=st.sampled_from([0.0, 0.05, 0.2]),
-       on_roads=st.booleans())
-def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road, seed, rival, threshold, on_roads):
+       near_only=st.booleans())
+def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road, seed, rival, threshold, near_only):
     """An answer farther than road_fix_agree_m from the estimate is a fix only when the particles have ruled the
     estimate's place out: their posterior mass near the estimate (outside the answer's own disc) is under
-    road_fix_rival_mass (0: always a fix). And never while the estimate's recent path kept to the roads
-    (road_fix_trust_fit: the step's ``on_roads``)."""
+    road_fix_rival_mass (0: always a fix). And never when the step says ``near_only`` (road_fix_near_only, or
+    road_fix_trust_fit while the estimate's recent path kept to the roads)."""
     from mapfusion.relocalise import Located, RoadParticles
 
     cfg = dataclasses.replace(ON, road_fix_rival_mass=threshold)
@@ -169,9 +169,9 @@ def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road
     xj, yj = (float(v) for v in road.xy_m[j])
     loc = Located(xj, yj, 0.0, 0.0, int(road.edge[j]), 1, float(road.s_m[j]), 1.0 - rival, 1.0, 0.0, 100.0)
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(float(road.xy_m[i, 0]), float(road.xy_m[i, 1]), 0.0))
-    fixes._on_roads = on_roads
+    fixes._near_only = near_only
     held = fixes._agrees(loc, pred)
-    assert held == (on_roads or threshold > 0 and rival >= threshold - 1e-9) or abs(rival - threshold) < 1e-6
+    assert held == (near_only or threshold > 0 and rival >= threshold - 1e-9) or abs(rival - threshold) < 1e-6
 
 
 @settings(max_examples=20, deadline=None)
@@ -247,12 +247,13 @@ def test_road_fixes_wait_while_a_search_runs(road):
     replay of the path under GPS); by default no road fix enters
     the graph while it runs (the fixes' particles start around the very estimate the search questions), and the
     fixes come once it has ended. With road_fix_while_searching they do come during the search. (Route 2: on
-    route 1 the search, seeded by the frame it begins at since 2026-11-25, no longer ends within the drive.)"""
+    route 1 the search, seeded by the frame it begins at since 2026-11-25, no longer ends within the drive.
+    road_fix_near_only off: it refuses the far fixes this test counts, whichever way the wait goes.)"""
     drive = _wandering(road, 2)
     seen = {}
     for waits in (True, False):
         cfg = dataclasses.replace(ON, map_relocalisation=True, road_fix_while_searching=not waits,
-                                  reloc_gps_fit_min=0.0, reloc_gps_replay_m=0.0)
+                                  reloc_gps_fit_min=0.0, reloc_gps_replay_m=0.0, road_fix_near_only=False)
         eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
         x, y, ox, oy, oyaw = drive
         during = after = searched = 0
@@ -271,14 +272,17 @@ def test_road_fixes_wait_while_a_search_runs(road):
     assert seen[False][0] > 0, seen
 
 
-@pytest.mark.parametrize("relocalise,trust", [(True, True), (True, False), (False, True)])
-def test_the_road_fixes_hear_that_the_path_kept_to_the_roads_only_where_it_is_measured(road, relocalise, trust):
-    """road_fix_trust_fit: the engine tells the road fixes whether the estimate's last reloc_gps_fit_m lay on the
-    roads — measured by the association only with map_relocalisation, so without it (or with the option off) they
-    never hear it. A drive tracked on Helsinki's roads after its GPS ends: at its end the path kept to the roads."""
+@pytest.mark.parametrize("relocalise,trust,near", [(True, True, False), (True, False, False), (False, True, False),
+                                                   (True, False, True), (False, False, True)])
+def test_the_road_fixes_are_kept_near_only_with_a_search_to_move_the_estimate_far(road, relocalise, trust, near):
+    """With map_relocalisation (whose search moves a lost estimate far), road_fix_near_only keeps every road fix
+    near the estimate; road_fix_trust_fit does while the estimate's last reloc_gps_fit_m lay on the roads —
+    measured by the association only with map_relocalisation. Without it the fixes may move an estimate far (they
+    are the only way back). A drive tracked on Helsinki's roads after its GPS ends: at its end the path kept to the
+    roads."""
     x, y, yaw, _ = graph_route(road, 3, 1500.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, 3, heading_rad=0.7, noise_m=0.02)
-    cfg = dataclasses.replace(ON, map_relocalisation=relocalise, road_fix_trust_fit=trust)
+    cfg = dataclasses.replace(ON, map_relocalisation=relocalise, road_fix_trust_fit=trust, road_fix_near_only=near)
     eng, _, err = _run(road, cfg, x, y, ox, oy, oyaw, 400)
     assert err < 15.0, err
-    assert eng._road_fixes._on_roads == (relocalise and trust)
+    assert eng._road_fixes._near_only == (relocalise and (near or trust))
