@@ -160,17 +160,10 @@ def _kidnapped(request):
 
 
 @family("kidnapped")
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-25 (session 26: the gap's search from the engine's guess, "
-                   "an answer not its own rival, the outage step's heading term capped): this family 7 of 8 within "
-                   "500 m (VO jump Helsinki s1 is not knocked off — the engine carries the last velocity along the road "
-                   "over the VO's gap —; VO jump Helsinki s2 576 m; VO jump Kotka s2 3,182 → 170 m); over seeds 1–30 "
-                   "94 of 120, see docs/method.md — the search needs turns to converge, and a region of 200–400 m "
-                   "still holds look-alike paths; needs 90%. 2026-11-26 (session 30: a biased fix window registered "
-                   "on the roads, road fixes trusting a path on the roads): still 7 of 8 here (the biased windows "
-                   "14-58 m; VO jump Helsinki s2 576 m); seeds 1-30 103 of 120 (86%)")
 def test_kidnapped_runs_are_relocalised_within_500_m(request):
     """Issue 17: after the kidnap (a biased fix window, or a VO that re-initialises 30–300 m off) and with no
-    GPS after it, at least 90% of the runs are found again by the map within 500 m of driving."""
+    GPS after it, at least 90% of the runs are found again by the map within 500 m of driving. (Passing since
+    2026-11-26, session 31: 8 of 8 here; seeds 1-10 36 of 40, seeds 1-30 105 of 120, see docs/method.md.)"""
     rows = _kidnapped(request)
     found = [r for r in rows if r["relocalised"] and r["relocalisation_m"] <= 500.0]
     assert len(found) >= 0.9 * len(rows), sorted((r["scenario"], r["relocalisation_m"]) for r in rows)
@@ -184,7 +177,9 @@ def test_kidnapped_runs_are_relocalised_within_500_m(request):
                    "see is undone only by the next lost event); 2026-11-26 (session 29): seeds 1-10 7.42 m, and "
                    "the same 20 drives never kidnapped 8.1 m after their GPS ends, so the 5 m is the tracking's; "
                    "2026-11-26 (session 30): this family 7.0 m (3.6-10.6 m a run), none wrong; seeds 1-10 7.88 m, "
-                   "seeds 1-30 4 of 120 runs wrong, the longest 1,238 m")
+                   "seeds 1-30 4 of 120 runs wrong, the longest 1,238 m; 2026-11-26 (session 31): this family 7.0 m "
+                   "(3.6-10.6 m a run), none wrong; seeds 1-10 8.06 m, seeds 1-30 3 of 120 runs wrong for more than "
+                   "200 m, the longest 1,691 m")
 def test_kidnapped_runs_are_within_5_m_after_relocalisation_and_never_stay_wrong(request):
     """Issue 17: after re-localisation the mean online error is at most 5 m; no wrong convergence stays
     wrong for more than 200 m."""
