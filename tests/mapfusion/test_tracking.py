@@ -248,12 +248,12 @@ def test_road_fixes_wait_while_a_search_runs(road):
     the graph while it runs (the fixes' particles start around the very estimate the search questions), and the
     fixes come once it has ended. With road_fix_while_searching they do come during the search. (Route 2: on
     route 1 the search, seeded by the frame it begins at since 2026-11-25, no longer ends within the drive.
-    road_fix_near_only off: it refuses the far fixes this test counts, whichever way the wait goes.)"""
+    With road_fix_near_only, not the default, the far fixes this test counts are refused either way.)"""
     drive = _wandering(road, 2)
     seen = {}
     for waits in (True, False):
         cfg = dataclasses.replace(ON, map_relocalisation=True, road_fix_while_searching=not waits,
-                                  reloc_gps_fit_min=0.0, reloc_gps_replay_m=0.0, road_fix_near_only=False)
+                                  reloc_gps_fit_min=0.0, reloc_gps_replay_m=0.0)
         eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
         x, y, ox, oy, oyaw = drive
         during = after = searched = 0
