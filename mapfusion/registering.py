@@ -29,20 +29,21 @@ class FixRegistering(Reanchoring):
     def _register_due(self, k: int) -> bool:
         """Are GPS's fixes to be registered on the roads now: ``reloc_register_after_s`` after the last one (once per
         last fix), the estimate off the roads (less than ``reloc_gps_fit_min`` of its last ``reloc_gps_fit_m`` on a
-        road, or lost beside GPS)?"""
+        road, or lost beside GPS), or wherever it is with ``reloc_register_on_roads``?"""
         cfg, fixes = self.cfg, self.initialiser.fixes
         if cfg.reloc_register_ratio <= 0 or not fixes or fixes[-1][0] == self._register_checked_t \
                 or self.track.t[k] - fixes[-1][0] < cfg.reloc_register_after_s:
             return False
         self._register_checked_t = fixes[-1][0]
-        return self._beside_gps or not self._association.kept_to_roads()
+        return self._beside_gps or cfg.reloc_register_on_roads or not self._association.kept_to_roads()
 
     def _register_fixes(self, k: int, pred: gtsam.Pose3) -> bool:
-        """GPS has fallen silent where it left the estimate off the roads: its fixes of the last ``reloc_register_m``
-        registered on the roads (:func:`~mapfusion.register.register_on_roads`, ``reloc_register_ratio``). When the
-        shift is decisive, the odometry of the last ``reloc_register_place_m`` of fixes is placed on them, shifted, by
-        a rigid fit (as a GPS re-localisation places it; not the estimate moved: after a biased window its heading
-        may be off too), the smoother re-anchored there (a map re-anchoring), and True; otherwise False."""
+        """GPS has fallen silent (where it left the estimate off the roads, or anywhere with
+        ``reloc_register_on_roads``): its fixes of the last ``reloc_register_m`` registered on the roads
+        (:func:`~mapfusion.register.register_on_roads`, ``reloc_register_ratio``). When the shift is decisive, the
+        odometry of the last ``reloc_register_place_m`` of fixes is placed on them, shifted, by a rigid fit (as a GPS
+        re-localisation places it; not the estimate moved: after a biased window its heading may be off too), the
+        smoother re-anchored there (a map re-anchoring), and True; otherwise False."""
         cfg = self.cfg
         fixes: list[tuple[float, float, float]] = []
         length_m = 0.0

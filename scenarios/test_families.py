@@ -163,7 +163,7 @@ def _kidnapped(request):
 def test_kidnapped_runs_are_relocalised_within_500_m(request):
     """Issue 17: after the kidnap (a biased fix window, or a VO that re-initialises 30–300 m off) and with no
     GPS after it, at least 90% of the runs are found again by the map within 500 m of driving. (Passing since
-    2026-11-26, session 31: 8 of 8 here; seeds 1-10 36 of 40, seeds 1-30 105 of 120, see docs/method.md.)"""
+    2026-11-26, session 31: 8 of 8 here; seeds 1-10 37 of 40, seeds 1-30 106 of 120, see docs/method.md.)"""
     rows = _kidnapped(request)
     found = [r for r in rows if r["relocalised"] and r["relocalisation_m"] <= 500.0]
     assert len(found) >= 0.9 * len(rows), sorted((r["scenario"], r["relocalisation_m"]) for r in rows)
@@ -180,7 +180,7 @@ def test_kidnapped_runs_are_relocalised_within_500_m(request):
                    "seeds 1-30 4 of 120 runs wrong, the longest 1,238 m; 2026-11-26 (session 31, the gap's guess spanning "
                    "the carried step): this family 9.3 m (3.6-26.6 m a run: VO jump Helsinki s1, never knocked off, "
                    "moved 197 m for 50 s by road fixes on a look-alike, see road_fix_near_only), none re-anchored "
-                   "wrong; seeds 1-10 8.39 m, seeds 1-30 3 of 120 runs wrong for more than 200 m, the longest "
+                   "wrong; seeds 1-10 8.46 m, seeds 1-30 3 of 120 runs wrong for more than 200 m, the longest "
                    "1,690 m")
 def test_kidnapped_runs_are_within_5_m_after_relocalisation_and_never_stay_wrong(request):
     """Issue 17: after re-localisation the mean online error is at most 5 m; no wrong convergence stays
