@@ -754,7 +754,7 @@ class FusionConfig:
                                           source="issue 17: a tracked estimate strays a lane from OSM's centre line")
     reloc_register_ratio: float = param(1.25, "With map_relocalisation: when GPS falls quiet (reloc_register_after_s)"
                                         " where it left the estimate off the roads (reloc_gps_fit_min, or lost beside "
-                                        "GPS), its fixes "
+                                        "GPS; anywhere with reloc_register_on_roads), its fixes "
                                         "of the last reloc_register_m are first registered on the roads "
                                         "(mapfusion.register: the shift within reloc_radius_m that puts them nearest "
                                         "the way-points); the estimate is moved by that shift, without a search, when "

@@ -1,7 +1,8 @@
 """Registering GPS's fixes on the roads, and the map's re-anchoring path (issue 17; a part of
-:class:`~mapfusion.engine.MapFusion`, kept apart to keep it small). When GPS falls quiet where it left the
-estimate off the roads, its last fixes are registered on the roads (:mod:`~mapfusion.register`): a decisive shift
-re-anchors the smoother at once, the odometry placed on the shifted fixes, without a search. Every map
+:class:`~mapfusion.engine.MapFusion`, kept apart to keep it small). When GPS falls quiet (where it left the
+estimate off the roads, or anywhere with ``reloc_register_on_roads``), its last fixes are registered on the roads
+(:mod:`~mapfusion.register`): a decisive shift re-anchors the smoother at once, the odometry placed on the shifted
+fixes, without a search. Every map
 re-anchoring (the registration's and the searches') goes through :meth:`FixRegistering._reanchor_on_map`."""
 
 from __future__ import annotations

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import FusionConfig
-from .geometry import wrap_angle
+from .geometry import point_segment_distance, wrap_angle
 from .roadmap import RoadMap
 
 log = logging.getLogger(__name__)
@@ -418,24 +418,15 @@ class RoadFollower(RoadParticles):
 def guess_log_weights(guess: Guess, xy_m: np.ndarray, heading_rad: np.ndarray) -> np.ndarray:
     """Normalised log-weights of particles at ``xy_m`` (n × 2, m) heading ``heading_rad`` (their roads' headings
     in their directions) under ``guess``: log(floor + (1 − floor) × exp(−½ (d²/σ² + a²/σ_yaw²))), normalised."""
-    d2 = _to_segment_sq(xy_m, guess.from_xy_m or (guess.x_m, guess.y_m), (guess.x_m, guess.y_m)) \
-        / (guess.sigma_m * guess.sigma_m)
+    end = np.array([[guess.x_m, guess.y_m]])
+    start = np.array([guess.from_xy_m]) if guess.from_xy_m is not None else end
+    d2 = (point_segment_distance(xy_m, start, end) / guess.sigma_m) ** 2
     a2 = (wrap_angle(heading_rad - guess.yaw_rad) / guess.yaw_sigma_rad) ** 2
     with np.errstate(divide="ignore"):  # (a floor of 0 or 1: one of the two terms is log 0)
         logw = np.logaddexp(math.log(guess.floor) if guess.floor > 0 else -np.inf,
                             (math.log1p(-guess.floor) if guess.floor < 1 else -np.inf) - 0.5 * (d2 + a2))
     top = float(logw.max())  # (in logs: with no floor, a guess far from every particle would underflow)
     return logw - (top + math.log(float(np.exp(logw - top).sum())))
-
-
-def _to_segment_sq(xy_m: np.ndarray, a: tuple[float, float], b: tuple[float, float]) -> np.ndarray:
-    """Squared distances (m²) of the points ``xy_m`` (n × 2) to the segment from ``a`` to ``b`` (a point if equal)."""
-    ab = np.subtract(b, a)
-    rel = xy_m - np.asarray(a)
-    den = float(ab @ ab)
-    u = np.clip(rel @ ab / den, 0.0, 1.0) if den > 0 else np.zeros(len(xy_m))
-    off = rel - u[:, None] * ab
-    return np.einsum("ij,ij->i", off, off)
 
 
 @dataclass(frozen=True)

@@ -3,8 +3,8 @@
 when the association calls the estimate lost or when GPS falls silent, run beside GPS when the estimate is
 lost while fixes still come, its answer re-anchoring the smoother (unless the posterior has not ruled the
 estimate's own place out), and the re-anchoring search watched on for a while after it acts. When GPS falls
-silent where it left the estimate off the roads, its last fixes are first registered on the roads
-(:mod:`~mapfusion.register`): a decisive shift re-anchors the estimate at once, without a search."""
+silent, its last fixes are first registered on the roads (:mod:`~mapfusion.registering`): a decisive shift
+re-anchors the estimate at once, without a search."""
 
 from __future__ import annotations
 
