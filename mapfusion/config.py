@@ -881,6 +881,15 @@ class FusionConfig:
         source="issue 17 (kidnapped VO jumps, seeds 1–10: a vehicle that stopped at a light in the gap moved 18 m of "
                "the 65 m carried, and the search took 574 m)",
     )
+    reloc_gap_keeps_region: bool = param(
+        True,
+        "An odometry gap while a search is still running (not converged) begins the gap's search over the smallest "
+        "disc that holds its own region and the running search's, grown by the distance driven since that began and "
+        "the gap's reach (at most reloc_max_radius_m): the vehicle is still somewhere the running search had not ruled "
+        "out; false: around the estimate before the gap alone.",
+        source="issue 17 (rain-tunnel, GPS at the start only: Helsinki vo s3's second VO gap, 83 s after a 59 s "
+               "one whose search had not converged, searched 133 m around an estimate already 480 m off)",
+    )
     reloc_kld_epsilon: float = param(0.0, "Adaptive particle count (KLD-sampling, Fox 2003): at each resampling as "
                                      "many particles as bound the posterior's error by this (Kullback-Leibler "
                                      "divergence, 99% confidence) over the bins it occupies, at most the count the "

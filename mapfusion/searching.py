@@ -51,8 +51,8 @@ class MapSearching(FixRegistering):
             reach = gap_s * self.cfg.reloc_gap_speed_mps
             if self.cfg.outage_step is not OutageStep.odometry:
                 reach = max(reach, math.hypot(pred.x() - prev.x(), pred.y() - prev.y()))
-            search.begin(Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + reach), frame=k,
-                         guess=self._gap_guess(prev, pred))
+            region = Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + reach)
+            search.begin(self._still_open(region, reach), frame=k, guess=self._gap_guess(prev, pred))
             return
         if assoc.became_lost:
             assoc.became_lost = False
@@ -87,6 +87,21 @@ class MapSearching(FixRegistering):
         return Guess(pred.x(), pred.y(), self._carried_sigma_m(length_m),
                      pred.rotation().yaw(), math.radians(cfg.outage_rot_sigma_deg), cfg.reloc_gap_guess_floor,
                      (prev.x(), prev.y()) if cfg.reloc_gap_guess_along else None)
+
+    def _still_open(self, region: Region, reach_m: float) -> Region:
+        """The region of a search begun after an odometry gap (``region``: around the estimate before it) while another
+        search still runs unconverged (``reloc_gap_keeps_region``): the smallest disc that also holds the running
+        search's region grown by the distance driven since it began and by the gap's ``reach_m`` (the vehicle may be
+        anywhere that search had not ruled out, the estimate it left being no better than its guess), at most
+        ``reloc_max_radius_m``."""
+        running = self._search.active
+        if running is None or not self.cfg.reloc_gap_keeps_region:
+            return region
+        old = running.region
+        both = enclosing_disc(region, Region(old.x_m, old.y_m, old.radius_m + running.particles.driven_m + reach_m))
+        log.info("an odometry gap while a search runs: the new search covers the running one's region too, %.0f m "
+                 "around (%.0f, %.0f)", min(both.radius_m, self.cfg.reloc_max_radius_m), both.x_m, both.y_m)
+        return Region(both.x_m, both.y_m, min(both.radius_m, self.cfg.reloc_max_radius_m))
 
     def _gps_left_it_off_the_roads(self, k: int) -> bool:
         """GPS has fallen silent: does where it left the estimate need a second opinion? Only when less than
@@ -128,8 +143,10 @@ class MapSearching(FixRegistering):
         """The search that re-anchored the estimate goes on (``reloc_watch_m``). If its posterior's mass moves to
         another place (its answer jumps, beyond where the vehicle drove, by more than ``reloc_watch_apart_m``)
         farther than that from the estimate, the path since has ruled the first answer out, and the estimate is
-        re-anchored again, there. If instead its one cluster drifts away from the estimate (a manoeuvre its
-        particles could not follow), the watched posterior no longer means anything: watching ends."""
+        re-anchored again, there — at the first step at which the posterior no longer holds ``reloc_rival_mass`` at
+        the estimate (until then the jump is weighed again at each step). If instead its one cluster drifts away
+        from the estimate (a manoeuvre its particles could not follow), the watched posterior no longer means
+        anything: watching ends."""
         search = self._search
         watched = search.watching
         assert watched is not None
@@ -137,10 +154,10 @@ class MapSearching(FixRegistering):
         if loc is None:
             return
         last = self._watch_last
-        self._watch_last = loc
         apart = self.cfg.reloc_watch_apart_m
         off = math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y())
         if off <= apart:
+            self._watch_last = loc
             return
         jumped = last is None or \
             math.hypot(loc.x_m - last.x_m, loc.y_m - last.y_m) - (loc.driven_m - last.driven_m) > apart
@@ -150,6 +167,8 @@ class MapSearching(FixRegistering):
             search.watching = None
             return
         if self._rival_at_estimate(k, pred, loc, watched):
+            # (the answer that jumped is not the last one yet: at the next step it has still jumped, and the rival
+            # mass left at the estimate is weighed again; counted as the last, it would be taken for a drift)
             return
         log.info("t=%.1f s: the search that re-anchored the estimate now holds %.0f%% of its posterior %.0f m away",
                  self.track.t[k], 100 * loc.mass, off)
