@@ -693,6 +693,20 @@ class FusionConfig:
                                          "road_fix_uturn_probability instead.", min=0.0, max=10.0,
                                          source="issue 17: SUMO's vehicles turn back at junctions; kidnapped "
                                          "runs re-anchored wrong 13 -> 7 of 120 (seeds 1-30)")
+    reloc_reverse_deg: float = param(
+        0.0,
+        "A step whose odometry chord points more than this away from any of the four chords before it (some 20 m) "
+        "is a turn back: half of the search's particles, drawn at random, turn back there (on a two-way road in "
+        "place, on a one-way road onto the nearest road that may be driven the other way within "
+        "reloc_reverse_reach_m: the other carriageway); 0: off (turns back only at vertices, "
+        "reloc_uturn_at_vertex). The road fixes' particles take road_fix_reverse_deg.",
+        unit="deg", min=0.0, max=180.0,
+        source="issue 17: SUMO's vehicles turn back mid-road and across dual carriageways about once every 2 km "
+               "(40 kidnapped drives, seeds 1-10: 71 turns back); VO jump Helsinki s11 lost the right cluster at one")
+    reloc_reverse_reach_m: float = param(30.0, "How far from a particle on a one-way road a turn back "
+                                         "(reloc_reverse_deg) looks for a road that may be driven the other way.",
+                                         unit="m", min=0.0, max=1000.0,
+                                         source="issue 17: dual carriageways' centre lines 5-25 m apart")
     reloc_offset_max_deg: float = param(180.0, "Largest heading innovation a particle's offset follows in one step "
                                         "(180: any; the road fixes' particles take road_fix_offset_max_deg).",
                                         unit="deg", min=0.0, max=180.0, source="issue 16")
@@ -979,6 +993,9 @@ class FusionConfig:
                                               "junctions), and particles that cannot are all wrong after it.",
                                               min=0.0, max=1.0, source="issue 16: Helsinki seed 5 turns back at "
                                               "253 s")
+    road_fix_reverse_deg: float = param(0.0, "reloc_reverse_deg for the road fixes' particles (turns back told from "
+                                        "the odometry, besides road_fix_uturn_probability); 0: off.", unit="deg",
+                                        min=0.0, max=180.0, source="issue 17")
     road_fix_scale_gain: float = param(0.02, "Each road fix moves the engine's odometry scale this fraction of the way "
                                        "(in log) to the fix's cluster's scale: the map keeps observing the scale "
                                        "after GPS ends (0: the scale GPS measured stays).", min=0.0, max=1.0,

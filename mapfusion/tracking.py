@@ -56,6 +56,7 @@ def particle_config(cfg: FusionConfig) -> FusionConfig:
                                reloc_converge_mass=cfg.road_fix_min_mass,
                                reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
                                reloc_uturn_probability=cfg.road_fix_uturn_probability, reloc_uturn_at_vertex=0.0,
+                               reloc_reverse_deg=cfg.road_fix_reverse_deg,
                                reloc_kld_epsilon=cfg.road_fix_kld_epsilon, reloc_particles=cfg.road_fix_particles)
 
 

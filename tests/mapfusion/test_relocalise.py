@@ -1006,3 +1006,97 @@ def test_a_guess_weighs_the_first_particles_within_its_floor(road, seed, floor, 
     if floor == 1.0:
         assert np.allclose(w, 1.0 / len(w))
 
+
+# ---------------------------------------------------------------- turns back told from the odometry (reloc_reverse_deg)
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.floats(-40.0, 40.0), min_size=6, max_size=30), st.floats(0.0, 2.0 * math.pi),
+       st.integers(1, 29), st.floats(-25.0, 25.0), st.floats(1.5, 8.0))
+def test_a_turn_back_is_told_once_and_only_from_a_reversed_chord(wiggle_deg, heading, at, back_deg, length_m):
+    """Step chords that wander by at most 40° from one heading never tell a turn back at 150°; a chord pointing back
+    (within 25° of the opposite heading) after one along the heading tells one, once (not at the chords after it,
+    which point back too); chords under a metre have no heading; 0° turns the test off."""
+    from mapfusion.relocalise import _Reversal
+
+    def chord(h: float, m: float = length_m) -> np.ndarray:
+        return m * np.array([math.cos(h), math.sin(h)])
+
+    chords = [heading + math.radians(w) for w in wiggle_deg]
+    straight = _Reversal(150.0)
+    assert not any(straight.seen(chord(h)) for h in chords)
+    at = min(at, len(chords) - 1)
+    turned = chords[:at - 1] + [heading] + [heading + math.pi + math.radians(back_deg)] + \
+        [heading + math.pi + math.radians(w) / 8.0 for w in wiggle_deg[at + 1:]]
+    r = _Reversal(150.0)
+    told = [r.seen(chord(h)) for h in turned]
+    assert told.count(True) == 1 and told.index(True) == at
+    off, short = _Reversal(0.0), _Reversal(150.0)
+    assert not any(off.seen(chord(h)) for h in turned)
+    assert not any(short.seen(chord(h, 0.9)) for h in turned)
+
+
+@pytest.fixture(scope="module")
+def carriageways(tmp_path_factory):
+    """A dual carriageway (two one-way roads 12 m apart: east side northbound, west side southbound) and, 1 km east,
+    a lone two-way road north; with the map-frame position of the drawing's origin (the frame is the map's own)."""
+    from tests.helpers import write_osm
+
+    one = {"highway": "primary", "lanes": "2", "oneway": "yes"}
+    roads = [(np.array([[6.0, -1000.0], [6.0, 1000.0]]), one), (np.array([[-6.0, 1000.0], [-6.0, -1000.0]]), dict(one)),
+             (np.array([[1000.0, -1000.0], [1000.0, 1000.0]]), {"highway": "primary", "lanes": "2"})]
+    road = RoadMap.from_osm(write_osm(tmp_path_factory.mktemp("dual"), roads))
+    return road, road.xy_m.min(axis=0) - np.array([-6.0, -1000.0])
+
+
+def test_a_particle_turning_back_takes_the_other_carriageway_or_its_own_two_way_road(carriageways):
+    """Turning back, a particle on a one-way carriageway moves onto the nearest point of the other one (heading the
+    other way); on a two-way road it turns in place; where no road heading the other way lies within reach it goes
+    on as it was."""
+    from mapfusion.relocalise import _turn_back
+
+    road, (ox, oy) = carriageways
+    p = RoadParticles(road, CFG, 0)
+    p.start(Region(ox, oy, 1500.0), math.pi / 2, n=3000)
+    xy0 = p.positions().copy()
+    heading0 = p._heading(p.edge, p.along, p.direction)
+    _turn_back(p, np.arange(len(p)))
+    xy1, heading1 = p.positions(), p._heading(p.edge, p.along, p.direction)
+    assert (np.abs(wrap(heading1 - heading0 - math.pi)) < math.radians(1.0)).all()
+    dual = np.abs(xy0[:, 0] - ox) < 100.0
+    assert dual.sum() > 1000 and (~dual).sum() > 500
+    across = np.hypot(*(xy1[dual] - xy0[dual]).T)
+    assert (np.abs(across - 12.0) < 1.0).all()  # (the other carriageway's nearest point: way-points ~1 m apart)
+    assert (np.sign(xy1[dual, 0] - ox) == -np.sign(xy0[dual, 0] - ox)).all()
+    assert np.allclose(xy1[~dual], xy0[~dual])  # (the two-way road: in place)
+    lone = RoadParticles(road, dataclasses.replace(CFG, reloc_reverse_reach_m=8.0), 0)
+    lone.start(Region(ox, oy, 100.0), math.pi / 2, n=500)
+    before = (lone.edge.copy(), lone.direction.copy(), lone.along.copy())
+    _turn_back(lone, np.arange(len(lone)))  # (the other carriageway is 12 m away: out of reach)
+    assert all(np.array_equal(a, b) for a, b in zip(before, (lone.edge, lone.direction, lone.along)))
+
+
+def wrap(a):
+    return np.remainder(np.asarray(a) + math.pi, 2.0 * math.pi) - math.pi
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_search_follows_a_u_turn_across_a_dual_carriageway(carriageways, seed):
+    """A vehicle drives 300 m north on the east carriageway, turns back across to the west one (a 6 m radius) and
+    drives 100 m south. With reloc_reverse_deg the search, begun around its start, keeps at least a third of its
+    posterior within 30 m of it (the rest lies along the straight road it cannot tell apart); without, it keeps
+    none there (its particles on one-way roads cannot turn back)."""
+    road, origin = carriageways
+    north = np.column_stack([np.full(300, 6.0), np.arange(-300.0, 0.0, 1.0)])
+    a = np.linspace(0.0, math.pi, 20)[1:-1]
+    south = np.column_stack([np.full(100, -6.0), np.arange(0.0, -100.0, -1.0)])
+    xy = np.vstack([north, np.column_stack([6.0 * np.cos(a), 6.0 * np.sin(a)]), south]) + origin
+    yaw = np.arctan2(np.diff(xy[:, 1]), np.diff(xy[:, 0]))
+    yaw = np.append(yaw, yaw[-1])
+    mass = {}
+    for deg in (0.0, 150.0):
+        guess = Guess(xy[0, 0], xy[0, 1], 20.0, math.pi / 2, math.radians(10.0), 0.05)
+        region = Region(origin[0], origin[1] - 200.0, 300.0)
+        r = Relocaliser(road, FusionConfig(reloc_reverse_deg=deg), region, seed, guess=guess)
+        for k in range(len(xy)):
+            r.add(xy[k, 0], xy[k, 1], yaw[k], k)
+        mass[deg] = r.particles.mass_within(xy[-1, 0], xy[-1, 1], 30.0)
+    assert mass[150.0] >= 0.3 and mass[0.0] < 0.05, mass
