@@ -5,7 +5,8 @@ the last one), the gates that keep wrong-road priors out, and the map prior's fa
 A prior is added only when the predicted pose lies farther from its road than the road is wide
 (road width = lanes × ``lane_width_m``), and not when the match's angle exceeds
 ``prior_max_angle_deg``, the match lies on a join inside a junction, another way's best D is
-within ``prior_ambiguity_m`` (junctions, parallel roads), or — with ``prior_gate_sigma`` — the
+within ``prior_ambiguity_m`` (junctions, parallel roads; a way continuing the match's road on its line, within
+``prior_ambiguity_line_m``, is the same road and no rival), or — with ``prior_gate_sigma`` — the
 correction is implausibly large for the estimate's own uncertainty. Where the prior puts the
 vehicle across the road is ``prior_target``: the centre line (the paper), the nearest edge of the
 band (the default since issue 16), or the band combined with the estimate's own lateral σ; at most
@@ -23,6 +24,7 @@ import numpy as np
 from . import factors
 from .config import FusionConfig, PriorTarget, RoadTracking, TrafficSide
 from .counters import Counters
+from .geometry import on_line
 from .hypotheses import RoadHypotheses, Step, candidates
 from .matcher import Match, lateral_bound_ok, map_pose, match, match_candidates, match_range
 from .roadmap import RoadMap
@@ -43,6 +45,10 @@ BAND_SIGMA_FLOOR_M = 0.1
 def _across(pose: gtsam.Pose3, lateral_m: float) -> gtsam.Pose3:
     """The pose moved ``lateral_m`` to its left (its own y axis)."""
     return pose.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(0.0, lateral_m, 0.0)))
+
+
+#: Most a way-point's heading may turn from the match's road's and still continue it (prior_ambiguity_line_m).
+_CONTINUES_RAD = math.radians(10.0)
 
 
 class MapAssociation:
@@ -187,12 +193,20 @@ class MapAssociation:
         road = self.road
         near = road.query_radius(pred.x(), pred.y(), self.cfg.search_radius_m)
         other = near[road.way_index[near] != road.way_index[m.index]]
+        if other.size and self.cfg.prior_ambiguity_line_m > 0:
+            other = other[~self._continues(m, other)]
         if other.size == 0:
             return False
         _, _, _, _, d = match_candidates(pred.x(), pred.y(), pred.rotation().yaw(), road.xy_m[other],
                                          road.legal_cos[other], road.legal_sin[other],
                                          self.cfg.angle_weight_m_per_deg, road.two_way_sign[other])
         return d - m.cost < margin
+
+    def _continues(self, m: Match, points: np.ndarray) -> np.ndarray:
+        """Which way-points continue the match's road (``prior_ambiguity_line_m``): on its line, heading along it."""
+        road = self.road
+        return on_line(road.xy_m[m.index], road.yaw_rad.item(m.index), road.xy_m[points], road.yaw_rad[points],
+                       self.cfg.prior_ambiguity_line_m, _CONTINUES_RAD)
 
     def gated(self, m: Match, pred: gtsam.Pose3, lateral_m: float, width_m: float, pos_sigma_m: float) -> bool:
         """A prior from this match would likely come from the wrong road."""

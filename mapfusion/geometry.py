@@ -133,3 +133,14 @@ def point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.nd
     t = np.clip(np.einsum("nmj,mj->nm", ap, ab) / ab2[None, :], 0.0, 1.0)
     closest = a[None, :, :] + t[..., None] * ab[None, :, :]
     return np.min(np.linalg.norm(p[:, None, :] - closest, axis=2), axis=1)
+
+
+def on_line(origin_m: np.ndarray, heading_rad: float, points_m: np.ndarray, points_heading_rad: np.ndarray,
+            tol_m: float, max_angle_rad: float) -> np.ndarray:
+    """Which points lie on the line through ``origin_m`` (2,) along ``heading_rad``: within ``tol_m`` of it, their
+    own heading within ``max_angle_rad`` of the line's in either direction. (N, 2), (N,) → (N,) bool."""
+    c, s = np.cos(heading_rad), np.sin(heading_rad)
+    d = np.asarray(points_m, dtype=float) - np.asarray(origin_m, dtype=float)
+    across = np.abs(c * d[:, 1] - s * d[:, 0])
+    turn = np.abs(np.sin(np.asarray(points_heading_rad) - heading_rad))
+    return (across <= tol_m) & (turn <= np.sin(max_angle_rad))

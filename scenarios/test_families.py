@@ -97,7 +97,9 @@ def test_clear_never_worse_by_more_than_0_3_m(request):
 
 
 @family("intersections")
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-24 (planar steps on the local horizontal): 95.5% (2026-11-23: "
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-26 (session 33, split ways no rivals for the ambiguity gate): "
+                   "96.8% (the SUMO Helsinki runs 85.2% and 72.3%); 2026-11-24 (planar steps on the local "
+                   "horizontal): 95.5% (2026-11-23: "
                    "96.0%; 97.7% with the paper-calibrated VO): the SUMO Helsinki runs match 85.5% and 53.8% (from 94.7% "
                    "and 74.4% before the VO fit) — with the fitted VO's heading noise the estimate reaches junctions "
                    "further off its road and the single-frame match takes the crossing road; Berlin and Bayreuth stay at "
@@ -182,7 +184,9 @@ def test_kidnapped_runs_are_relocalised_within_500_m(request):
                    "moved 197 m for 50 s by road fixes on a look-alike, see road_fix_near_only), none re-anchored "
                    "wrong; seeds 1-10 8.46 m, seeds 1-30 3 of 120 runs wrong for more than 200 m, the longest "
                    "1,690 m; 2026-11-26 (session 32, a watched jump held back weighed again): this family "
-                   "unchanged; seeds 1-30 2 of 120 wrong for more than 200 m, 229 and 210 m")
+                   "unchanged; seeds 1-30 2 of 120 wrong for more than 200 m, 229 and 210 m; 2026-11-26 (session 33, "
+                   "split ways no rivals for the ambiguity gate): this family 6.6 m (3.6-9.2 m a run), none wrong; "
+                   "seeds 1-10 7.93 m, seeds 1-30 1 of 120 wrong for more than 200 m (210 m)")
 def test_kidnapped_runs_are_within_5_m_after_relocalisation_and_never_stay_wrong(request):
     """Issue 17: after re-localisation the mean online error is at most 5 m; no wrong convergence stays
     wrong for more than 200 m."""
