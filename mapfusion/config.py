@@ -869,6 +869,15 @@ class FusionConfig:
         "such a correction was never made (false: counted in full).",
         source="issue 17 (kidnapped VO jumps: steps carried across the gap 15–60 m along the road stayed so)",
     )
+    reloc_reweigh_held: bool = param(False, "A search whose converged answer reloc_rival_mass held back goes on: its "
+                                     "answer is weighed again at each of its steps and re-anchors the estimate once "
+                                     "the rival mass has gone, for at most reloc_watch_m more driving (false: the "
+                                     "search ends with the answer held back).",
+                                     source="issue 17, session 33: kidnapped VO jump Helsinki s9, an answer 34 m "
+                                     "from an estimate 31 m off held back once (5% at the estimate), drifted to 145 m "
+                                     "before the next search found it. Off by measurement: seeds 1-10 within 500 m 36 "
+                                     "-> 38 of 40, but VO jump Kotka s24, a good estimate (2.96 m), was moved 124 m "
+                                     "onto a look-alike (ATE 114.6 m)")
     reloc_give_up_m: float = param(1500.0, "A search not converged after this much driving starts again around the "
                                    "estimate with twice the radius.", unit="m", min=10.0, max=1000000.0,
                                    source="issue 17")

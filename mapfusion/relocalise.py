@@ -624,6 +624,7 @@ class Relocaliser:
         self._held_m = 0.0  # driving over which the posterior has stayed converged on one moving cluster
         self._held: Located | None = None
         self.answer: Located | None = None  # the converged answer at the last step (None: not converged)
+        self.held_until_m: float | None = None  # an answer held back: the search goes on until this driven distance
         self.k0: int | None = None  # the caller's frame number of the first pose, when it gives one
         self.feed_scale: float | None = None  # the engine's odometry scale when it first fed this search
 
@@ -708,11 +709,25 @@ class Search:
             self.watching = None
         return loc
 
+    def hold(self, search: Relocaliser) -> bool:
+        """Keep ``search``, whose converged answer the engine held back, running (``reloc_reweigh_held``): its
+        answer is weighed again at its next steps, over at most ``reloc_watch_m`` more driving. False (the search
+        ends) when the option is off or that driving is spent."""
+        if not self.cfg.reloc_reweigh_held:
+            return False
+        if search.held_until_m is None:
+            search.held_until_m = search.particles.driven_m + self.cfg.reloc_watch_m
+        if search.particles.driven_m >= search.held_until_m:
+            return False
+        self.active = search
+        return True
+
     def widen_if_stuck(self, x_m: float, y_m: float, frame: int | None = None) -> None:
         """A search that has not converged over ``reloc_give_up_m`` starts again around (x, y) with twice
-        its radius (up to ``reloc_max_radius_m``): the vehicle may have left the region."""
+        its radius (up to ``reloc_max_radius_m``): the vehicle may have left the region. (A search that has
+        converged and is held back is not stuck.)"""
         a = self.active
-        if a is not None and a.particles.driven_m >= self.cfg.reloc_give_up_m:
+        if a is not None and a.held_until_m is None and a.particles.driven_m >= self.cfg.reloc_give_up_m:
             self.begin(Region(x_m, y_m, min(2.0 * a.region.radius_m, self.cfg.reloc_max_radius_m)), a.scale_range,
                        frame)
 

@@ -69,8 +69,10 @@ class MapSearching(FixRegistering):
             return
         active = search.active
         loc = search.feed(*self._search_pose(k, active), k)
-        if loc is None or math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m \
-                or self._rival_at_estimate(k, pred, loc, active):
+        if loc is None or math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
+            return
+        if self._rival_at_estimate(k, pred, loc, active):
+            search.hold(active)  # (reloc_reweigh_held: weighed again at its next steps, until the rival mass has gone)
             return
         self._map_reanchor(k, pred, loc, active)
 
