@@ -382,6 +382,33 @@ class FusionConfig:
         min=0.0,
         source="issue 16: by measurement on real VO, KITTI ground truth as odometry and a 60-run set (docs/method.md)",
     )
+    odometry_sigma_learned: bool = param(
+        False,
+        "Learn the odometry's σ from the GPS window at initialisation: the four odometry σ above are multiplied by "
+        "the drift a similarity fit to the window's fixes leaves (beyond the fixes' own noise, at its upper bound) "
+        "over the residual those σ would leave on the same path (odometry_trust.py), within "
+        "odometry_sigma_factor_min..max. A cold start, without fixes, keeps the configured σ.",
+        source="issue 17: the fit residual tells KITTI's poses (0.1-0.2 m), a stereo VO (0.4-2.8 m) and the simulated "
+               "VO (2.8-7.3 m) apart (docs/method.md)",
+    )
+    odometry_sigma_factor_min: float = param(
+        0.05,
+        "Smallest factor the learned odometry σ may put on the configured σ.",
+        unit="1",
+        min=0.0,
+        exclusive_min=True,
+        max=100.0,
+        source="issue 17: by measurement (docs/method.md)",
+    )
+    odometry_sigma_factor_max: float = param(
+        1.0,
+        "Largest factor the learned odometry σ may put on the configured σ (1: it may only tighten them).",
+        unit="1",
+        min=0.0,
+        exclusive_min=True,
+        max=100.0,
+        source="issue 17: by measurement (docs/method.md)",
+    )
     gps_sigma_m: float = param(
         2.0,
         "σ of a GPS position factor when the fix carries none.",
@@ -1383,6 +1410,9 @@ class FusionConfig:
         if self.reloc_scale_min > self.reloc_scale_max:
             raise ConfigError(f"reloc_scale_min ({self.reloc_scale_min:g}) exceeds reloc_scale_max "
                               f"({self.reloc_scale_max:g})")
+        if self.odometry_sigma_factor_min > self.odometry_sigma_factor_max:
+            raise ConfigError(f"odometry_sigma_factor_min ({self.odometry_sigma_factor_min:g}) exceeds "
+                              f"odometry_sigma_factor_max ({self.odometry_sigma_factor_max:g})")
 
     @classmethod
     def faithful(cls, **changes) -> FusionConfig:

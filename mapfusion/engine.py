@@ -23,7 +23,7 @@ import math
 import gtsam
 import numpy as np
 
-from . import factors
+from . import factors, odometry_trust
 from .association import MapAssociation
 from .config import FusionConfig
 from .counters import Counters
@@ -66,7 +66,40 @@ def _finite_pose(p: gtsam.Pose3) -> bool:
     return bool(np.all(np.isfinite(p.matrix())))
 
 
-class MapFusion(MapSearching, RoadFixing):
+class _Readings:
+    """The engine's read-only figures (scale, σ, calibrations): kept apart from the engine's logic."""
+
+    alignment: Alignment | None
+    initialiser: Initialiser
+    _motion: MotionFusion
+    _pos_sigma: float
+
+    @property
+    def initialised(self) -> bool:
+        return self.alignment is not None
+
+    @property
+    def scale(self) -> float | None:
+        """The odometry's scale (map metres per odometry unit), None before initialisation."""
+        return None if self.alignment is None else self.alignment.scale
+
+    scale_sigma = property(lambda self: None if self.alignment is None else self.alignment.scale_sigma)
+    wheel_scale = property(lambda self: self._motion.wg.scale, doc="True metres per wheel metre (1 until calibrated).")
+    gyro_bias_radps = property(lambda self: self._motion.wg.bias_radps, doc="The gyro's estimated yaw-rate bias.")
+    position_sigma_m = property(lambda self: self._pos_sigma, doc="The latest marginal's largest positional σ (m).")
+    odometry_sigma_factor = property(lambda self: self._motion.sigma_factor,
+                                     doc="The factor on the configured odometry σ (odometry_sigma_learned; else 1).")
+
+    scale_windows = property(lambda self: None if self.initialiser.windows is None else self.initialiser.windows.scale,
+                             doc="The paper's median-of-windows scale at initialisation.")
+
+    @property
+    def scale_samples(self) -> int:
+        """Scale samples the windows gave so far."""
+        return len(self.initialiser.scale_estimator.samples)
+
+
+class MapFusion(_Readings, MapSearching, RoadFixing):
     """The engine: feed it odometry and GPS in time order, read estimates back.
 
     ``add_odometry(t, relative_pose)``: the motion since the previous frame, body frame (x
@@ -101,29 +134,7 @@ class MapFusion(MapSearching, RoadFixing):
         self._init_reanchoring()
         self._road_fixes = RoadFixes(road, self.cfg, self.counters)  # (inert unless road_fixes and use_map)
 
-    # ------------------------------------------------------------------ public API
-    @property
-    def initialised(self) -> bool:
-        return self.alignment is not None
-
-    @property
-    def scale(self) -> float | None:
-        """The odometry's scale (map metres per odometry unit), None before initialisation."""
-        return None if self.alignment is None else self.alignment.scale
-
-    scale_sigma = property(lambda self: None if self.alignment is None else self.alignment.scale_sigma)
-    wheel_scale = property(lambda self: self._motion.wg.scale, doc="True metres per wheel metre (1 until calibrated).")
-    gyro_bias_radps = property(lambda self: self._motion.wg.bias_radps, doc="The gyro's estimated yaw-rate bias.")
-    position_sigma_m = property(lambda self: self._pos_sigma, doc="The latest marginal's largest positional σ (m).")
-
-    scale_windows = property(lambda self: None if self.initialiser.windows is None else self.initialiser.windows.scale,
-                             doc="The paper's median-of-windows scale at initialisation.")
-
-    @property
-    def scale_samples(self) -> int:
-        """Scale samples the windows gave so far."""
-        return len(self.initialiser.scale_estimator.samples)
-
+    # ------------------------------------------------------------------ public API (and the readings of _Readings)
     def map_prior_times(self) -> list[float]:
         """Times of the frames that received a map prior."""
         return [self.track.t[k] for k in self.map_prior_frames if k >= self.track.first]
@@ -252,6 +263,15 @@ class MapFusion(MapSearching, RoadFixing):
         self._start_graph(anchor)
         self._note_outage_in_batch()
 
+    def _learn_odometry_sigma(self) -> None:
+        """``odometry_sigma_learned``: the window's fixes set the factor on the odometry's σ (odometry_trust.py)."""
+        if self.cfg.odometry_sigma_learned and self.initialiser.fixes:
+            trust = odometry_trust.from_window(self.cfg, self.track, self._aligned, self.initialiser.fixes)
+            if trust is not None:
+                self._motion.sigma_factor = trust.factor
+                log.info("odometry σ × %.3f: the window's drift %.2f m against %.2f m at the configured σ (%d fixes)",
+                         trust.factor, trust.drift_m, trust.model_m, trust.fixes)
+
     def _to_map(self, raw: gtsam.Pose3) -> gtsam.Pose3:
         return self.track.to_map(raw, self._aligned)
 
@@ -265,6 +285,7 @@ class MapFusion(MapSearching, RoadFixing):
                 log.info("scale refined by the initialisation fit: %.4f → %.4f (± %.4f)", self.scale, fit.scale,
                          fit.scale_sigma)
                 self.alignment = self._motion.rescale(fit)
+        self._learn_odometry_sigma()
         batch = solve_initial_batch(self.cfg, self.track, self._aligned, self.initialiser.fixes,
                                     lambda k: self._between(k, before_init=True), self.counters, anchor)
         sm, last = self._sm, len(self.track) - 1
@@ -285,7 +306,8 @@ class MapFusion(MapSearching, RoadFixing):
         """The odometry factor into frame k."""
         step = self._step(k) if step is None else step
         noise = factors.odometry_noise(self.cfg, step, self.track.gap_frames(k), self.track.nominal_period_s,
-                                       before_init=before_init, scale_sigma=self._aligned.relative_sigma)
+                                       before_init=before_init, scale_sigma=self._aligned.relative_sigma,
+                                       sigma_factor=self._motion.sigma_factor)
         return factors.between(k, step, noise)
 
     def _add_frame(self, k: int) -> None:

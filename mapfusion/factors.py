@@ -144,18 +144,19 @@ def outage_sigma_m(cfg: FusionConfig, step: gtsam.Pose3, gap_s: float) -> float:
 
 
 def odometry_noise(cfg: FusionConfig, step: gtsam.Pose3, gap_frames: float, period_s: float, *,
-                   before_init: bool = False, scale_sigma: float | None = None) -> gtsam.noiseModel.Base:
+                   before_init: bool = False, scale_sigma: float | None = None,
+                   sigma_factor: float = 1.0) -> gtsam.noiseModel.Base:
     """σ of one odometry step. A step across dropped frames is looser in proportion to the frames
     it spans, and one across an outage (over ``outage_s``) is at least ``outage_step_fraction`` of
     its length: a re-initialised odometry guesses the motion it did not see. Before initialisation
     the step is either loose (``loose_before_init``) or inflated by the scale's relative σ
-    (``scale_sigma``: σ / scale)."""
+    (``scale_sigma``: σ / scale). ``sigma_factor`` multiplies the configured σ (the learned odometry σ)."""
     n = max(1.0, gap_frames)
     tr = step.translation()
     length_m = math.sqrt(tr.dot(tr))  # (np.linalg.norm's own arithmetic, less its overhead)
-    st = math.hypot(cfg.odometry_sigma_after_init_m * n, cfg.odometry_sigma_per_m * length_m)
-    sr = math.hypot(math.radians(cfg.odometry_rot_sigma_deg) * n,
-                    math.radians(cfg.odometry_rot_sigma_deg_per_m) * length_m)
+    st = sigma_factor * math.hypot(cfg.odometry_sigma_after_init_m * n, cfg.odometry_sigma_per_m * length_m)
+    sr = sigma_factor * math.hypot(math.radians(cfg.odometry_rot_sigma_deg) * n,
+                                   math.radians(cfg.odometry_rot_sigma_deg_per_m) * length_m)
     if n * period_s > cfg.outage_s:
         st = max(st, cfg.outage_step_fraction * length_m)
         sr = max(sr, math.radians(cfg.outage_rot_sigma_deg))

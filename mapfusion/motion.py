@@ -282,10 +282,11 @@ def fuse_steps(odo: PlanarStep, wheel: PlanarStep) -> PlanarStep:
     return PlanarStep(dx, dy, dyaw, sx, sy, syaw)
 
 
-def _odometry_sigmas(cfg: FusionConfig, length_m: float) -> tuple[float, float]:
-    """The odometry step's translation σ per axis and yaw σ, as its factor states them."""
-    return (math.hypot(cfg.odometry_sigma_after_init_m, cfg.odometry_sigma_per_m * length_m),
-            math.radians(math.hypot(cfg.odometry_rot_sigma_deg, cfg.odometry_rot_sigma_deg_per_m * length_m)))
+def _odometry_sigmas(cfg: FusionConfig, length_m: float, factor: float = 1.0) -> tuple[float, float]:
+    """The odometry step's translation σ per axis and yaw σ, as its factor states them (``factor``: the learned
+    odometry σ's)."""
+    return (factor * math.hypot(cfg.odometry_sigma_after_init_m, cfg.odometry_sigma_per_m * length_m),
+            factor * math.radians(math.hypot(cfg.odometry_rot_sigma_deg, cfg.odometry_rot_sigma_deg_per_m * length_m)))
 
 
 def _as_raw(step: PlanarStep, metres_per_unit: float, like: gtsam.Pose3 | None) -> gtsam.Pose3:
@@ -320,6 +321,7 @@ class MotionFusion:
         self._before_init: dict[float, tuple[float, gtsam.Pose3]] = {}  # t → (units per wheel metre, step made)
         self._restated: tuple[float, float] | None = None
         self._wheel_m = self._odometry_units = 0.0  # over agreeing steps, with forgetting (uncalibrated metres)
+        self.sigma_factor = 1.0  # the learned odometry σ's factor (the engine sets it at initialisation)
 
     @property
     def active(self) -> bool:
@@ -383,7 +385,7 @@ class MotionFusion:
             self.wg.advance(t_prev, t, wheel)
             return None
         if joined:
-            s_xy, s_yaw = _odometry_sigmas(self.cfg, raw_len * u)
+            s_xy, s_yaw = _odometry_sigmas(self.cfg, raw_len * u, self.sigma_factor)
             odo = PlanarStep(rel.x() * u, rel.y() * u, rel.rotation().yaw(), s_xy, s_xy, s_yaw)
             if agrees(self.cfg, odo, wheel):
                 self.wg.observe_yaw(t_prev, t, odo.dyaw_rad, wheel.length_m)
