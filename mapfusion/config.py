@@ -383,14 +383,15 @@ class FusionConfig:
         source="issue 16: by measurement on real VO, KITTI ground truth as odometry and a 60-run set (docs/method.md)",
     )
     odometry_sigma_learned: bool = param(
-        True,
+        False,
         "Learn the odometry's σ from the GPS window at initialisation: the four odometry σ above are multiplied by "
         "the drift a similarity fit to the window's fixes leaves (beyond the fixes' own noise, at its upper bound) "
         "over the residual those σ would leave on the same path (odometry_trust.py), within "
         "odometry_sigma_factor_min..max. A cold start, without fixes, keeps the configured σ.",
         source="issue 17: real and simulated VO drift 2-17x what the configured σ allow over the window, KITTI's own "
                "poses 0.3-1x; learned (max 3): kitti-real 50.8 -> 38.4 m, rain-tunnel 23.2 -> 15.2 m, kidnapped "
-               "after-error 7.93 -> 6.65 m, every family better (docs/method.md)",
+               "after-error 7.93 -> 6.65 m, every family better; not the default yet: five mechanism tests fail "
+               "with it (docs/method.md)",
     )
     odometry_sigma_factor_min: float = param(
         1.0,

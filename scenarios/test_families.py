@@ -81,9 +81,12 @@ def test_rain_reduces_mean_ate_by_40_percent(request):
 
 
 @family("heavy-rain")
+@pytest.mark.xfail(strict=False, reason="on the edge of the target, and which side depends on the machine: "
+                   "39.4%, 8.17 → 4.95 m, recorded on session 24's machine (eb8b165); 40.7%, 8.35 → 4.95 m, on "
+                   "session 26's (AMD EPYC), Map-Fusion's six ATEs within 0.02 m of the record but the simulated Kotka "
+                   "s3 drive's odometry ATE 13.45 → 14.51 m (the simulation's floating point differs across CPUs); "
+                   "2026-11-24: 10%, 11.98 → 10.79 m; needs ≥ 40%")
 def test_heavy_rain_reduces_mean_ate_by_40_percent(request):
-    """Met since 2026-11-26 (session 35, the odometry σ learned from the GPS window): 50%, 7.09 → 3.51 m.
-    (Before: 39–41% depending on the machine, 8.35 → 4.95 m, an xfail.)"""
     assert _reduction(_ok(request, "heavy-rain")) >= 0.40
 
 
@@ -94,12 +97,16 @@ def test_clear_never_worse_by_more_than_0_3_m(request):
 
 
 @family("intersections")
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-26 (session 33, split ways no rivals for the ambiguity gate): "
+                   "96.8% (the SUMO Helsinki runs 85.2% and 72.3%); 2026-11-24 (planar steps on the local "
+                   "horizontal): 95.5% (2026-11-23: "
+                   "96.0%; 97.7% with the paper-calibrated VO): the SUMO Helsinki runs match 85.5% and 53.8% (from 94.7% "
+                   "and 74.4% before the VO fit) — with the fitted VO's heading noise the estimate reaches junctions "
+                   "further off its road and the single-frame match takes the crossing road; Berlin and Bayreuth stay at "
+                   "99.1–99.8%")
 def test_intersections_match_rate_at_least_97_percent(request):
     """Over the whole family, the real Berlin and Bayreuth extracts included: without $MAPFUSION_DATA
-    the claim cannot be checked (the synthetic and Helsinki runs alone measured 96.9%). Met since 2026-11-26 (session
-    35, the odometry σ learned from the GPS window): 97.04%, the SUMO Helsinki runs 90.1% and 70.1% (before: 96.8%, a
-    strict xfail; the Helsinki runs' single-frame match takes the crossing road where the fitted VO reaches a junction
-    off its road)."""
+    the claim cannot be checked (the synthetic and Helsinki runs alone measured 96.9%)."""
     missing = load_family(FAMILIES / "intersections.toml").unavailable
     if missing:
         pytest.skip(f"{len(missing)} runs of the family need real data: {missing[0][1]}")
@@ -179,9 +186,7 @@ def test_kidnapped_runs_are_relocalised_within_500_m(request):
                    "1,690 m; 2026-11-26 (session 32, a watched jump held back weighed again): this family "
                    "unchanged; seeds 1-30 2 of 120 wrong for more than 200 m, 229 and 210 m; 2026-11-26 (session 33, "
                    "split ways no rivals for the ambiguity gate): this family 6.6 m (3.6-9.2 m a run), none wrong; "
-                   "seeds 1-10 7.93 m, seeds 1-30 1 of 120 wrong for more than 200 m (210 m); 2026-11-26 (session 35, the "
-                   "odometry σ learned from the GPS window): this family 6.0 m (3.4-7.9 m a run), none wrong; seeds "
-                   "1-10 6.65 m, none wrong")
+                   "seeds 1-10 7.93 m, seeds 1-30 1 of 120 wrong for more than 200 m (210 m)")
 def test_kidnapped_runs_are_within_5_m_after_relocalisation_and_never_stay_wrong(request):
     """Issue 17: after re-localisation the mean online error is at most 5 m; no wrong convergence stays
     wrong for more than 200 m."""

@@ -143,14 +143,15 @@ def _fused_factor(road: RoadMap, cfg: FusionConfig, ox, oy, oyaw, truth, gps_sig
 @pytest.mark.parametrize("case", ["both ways", "defaults", "off"])
 def test_the_engine_trusts_a_perfect_odometry_more_and_a_drifting_one_less(grid, case):
     """A perfect odometry under centimetre fixes is learned better than the configured σ say; one whose heading
-    drifts 0.5°/100 m and whose steps carry 5 cm of noise, under 1 m fixes, worse. The defaults only loosen (at most
-    3×); not learned: 1 either way."""
+    drifts 0.5°/100 m and whose steps carry 5 cm of noise, under 1 m fixes, worse. With the default limits it only
+    loosens (at most 3×); not learned (the default): 1 either way."""
     truth = synthetic_truth("random", n=2000, speed_mps=10.0, seed=4)
     truth.x_m += 100.0
     truth.y_m += 100.0
-    cfg = {"both ways": FusionConfig(use_map=False, odometry_sigma_factor_min=0.05, odometry_sigma_factor_max=10.0),
-           "defaults": FusionConfig(use_map=False),
-           "off": FusionConfig(use_map=False, odometry_sigma_learned=False)}[case]
+    cfg = {"both ways": FusionConfig(use_map=False, odometry_sigma_learned=True, odometry_sigma_factor_min=0.05,
+                                     odometry_sigma_factor_max=10.0),
+           "defaults": FusionConfig(use_map=False, odometry_sigma_learned=True),
+           "off": FusionConfig(use_map=False)}[case]
     perfect = _fused_factor(grid, cfg, truth.x_m, truth.y_m, truth.yaw_rad, truth, 0.01)
     ox, oy, oyaw = drifting_odometry(truth.x_m, truth.y_m, truth.yaw_rad, seed=1,
                                      yaw_drift_rad_per_m=math.radians(0.005), noise_m=0.05)
@@ -165,7 +166,8 @@ def test_the_engine_trusts_a_perfect_odometry_more_and_a_drifting_one_less(grid,
 
 def test_a_cold_start_has_no_window_to_learn_from(grid):
     """No GPS: the configured σ stay (the factor is 1) whatever the limits allow."""
-    eng = MapFusion(grid, FusionConfig(odometry_sigma_factor_min=0.05, odometry_sigma_factor_max=10.0))
+    eng = MapFusion(grid, FusionConfig(odometry_sigma_learned=True, odometry_sigma_factor_min=0.05,
+                                       odometry_sigma_factor_max=10.0))
     truth = synthetic_truth("random", n=300, speed_mps=10.0, seed=4)
     for k in range(len(truth.t_s)):
         eng.add_odometry(float(truth.t_s[k]), odometry_step(truth.x_m, truth.y_m, truth.yaw_rad, k))
