@@ -269,8 +269,8 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
             trust = odometry_trust.from_window(self.cfg, self.track, self._aligned, self.initialiser.fixes)
             if trust is not None:
                 self._motion.sigma_factor = trust.factor
-                log.info("odometry σ × %.3f: the window's drift %.2f m against %.2f m at the configured σ (%d fixes)",
-                         trust.factor, trust.drift_m, trust.model_m, trust.fixes)
+                log.info("odometry σ × %.3f: the window's drift %.2f-%.2f m against %.2f m at the configured σ "
+                         "(%d fixes)", trust.factor, trust.drift_low_m, trust.drift_m, trust.model_m, trust.fixes)
 
     def _to_map(self, raw: gtsam.Pose3) -> gtsam.Pose3:
         return self.track.to_map(raw, self._aligned)

@@ -13,8 +13,8 @@ similarity's four directions (shift, rotation, scale: the matrix A), and the exp
 trace((I − A·A⁺)·Σ) / m.
 
 The drift part of the observed residual is its mean square less the fixes' own 2σ² (the fit's four degrees of
-freedom deducted), taken at its upper bound (two standard errors of a χ² mean higher): with metre-level fixes the
-window cannot show that an odometry is better than the fixes' noise, so the learned σ never claims it.
+freedom deducted), bounded two standard errors of a χ² mean either side. The σ is loosened only by the lower bound and
+tightened only by the upper: with metre-level fixes the window shows neither, and the configured σ stay.
 """
 
 from __future__ import annotations
@@ -38,7 +38,8 @@ class OdometryTrust:
     """What the window said of the odometry: the factor on its σ and the two residuals it came from."""
 
     factor: float  # the configured odometry σ is multiplied by this (1: as configured)
-    drift_m: float  # RMS drift residual the fit left (upper bound), m
+    drift_low_m: float  # RMS drift residual the fit left, lower bound, m
+    drift_m: float  # the same, upper bound, m
     model_m: float  # RMS residual the configured σ would leave on the same path and fixes, m
     fixes: int
 
@@ -93,8 +94,8 @@ def model_residual_m(xy_m: np.ndarray, sigma_xy_m: np.ndarray, sigma_yaw_rad: np
 
 
 def drift_residual_m(residual_m: np.ndarray, fix_sigma_m: np.ndarray, confidence: float = 2.0) -> float:
-    """RMS (m) of the part of a similarity fit's residuals the fixes' noise does not explain, at its upper bound:
-    ``confidence`` standard errors of the fixes' χ² mean added."""
+    """RMS (m) of the part of a similarity fit's residuals the fixes' noise does not explain, at a bound:
+    ``confidence`` standard errors of the fixes' χ² mean added (the upper bound; negative: the lower, at least 0)."""
     r = np.asarray(residual_m, dtype=float)
     s2 = np.asarray(fix_sigma_m, dtype=float) ** 2
     m = len(r)
@@ -102,14 +103,20 @@ def drift_residual_m(residual_m: np.ndarray, fix_sigma_m: np.ndarray, confidence
         raise OdometryTrustError(f"need at least 5 finite residuals with their fixes' σ, got {m}")
     noise = 2.0 * float(s2.mean()) * (1.0 - 2.0 / m)  # a 2D fix's expected squared error, less the fit's 4 dof
     excess = max(float(np.mean(r * r)) - noise, 0.0)
-    return math.sqrt(excess + confidence * 2.0 * float(s2.mean()) / math.sqrt(m))
+    return math.sqrt(max(excess + confidence * 2.0 * float(s2.mean()) / math.sqrt(m), 0.0))
 
 
-def learn_factor(drift_m: float, model_m: float, lo: float, hi: float) -> float:
-    """The factor on the configured σ: the drift over the model's residual, within [lo, hi]."""
-    if not (model_m > 0 and math.isfinite(drift_m)):
+def learn_factor(drift_low_m: float, drift_high_m: float, model_m: float, lo: float, hi: float) -> float:
+    """The factor on the configured σ, moved only as far as the window shows: the drift's lower bound over the model's
+    residual where that exceeds 1 (within hi), its upper bound's where that is below 1 (within lo), else 1. (With
+    the upper bound alone, 2 m fixes loosened a perfect odometry: their noise's uncertainty read as drift.)"""
+    if not (model_m > 0 and math.isfinite(drift_low_m) and math.isfinite(drift_high_m)):
         return 1.0
-    return min(max(drift_m / model_m, lo), hi)
+    if drift_low_m > model_m:
+        return min(drift_low_m / model_m, max(hi, 1.0))
+    if drift_high_m < model_m:
+        return max(drift_high_m / model_m, min(lo, 1.0))
+    return 1.0
 
 
 def step_sigmas(cfg, length_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -137,6 +144,7 @@ def from_window(cfg, track, alignment, fixes: list[tuple[float, float, float, fl
         if keep.sum() < max(cfg.scale_fit_min_fixes, 5):
             return None
     drift = drift_residual_m(resid[keep], g[keep, 3])
+    drift_low = drift_residual_m(resid[keep], g[keep, 3], confidence=-2.0)
     xy = np.array([track.to_map(raw, alignment).translation()[:2] for raw in track.raw])
     length = np.concatenate([[0.0], np.hypot(*np.diff(xy, axis=0).T)])
     st, sr = step_sigmas(cfg, length)
@@ -147,5 +155,5 @@ def from_window(cfg, track, alignment, fixes: list[tuple[float, float, float, fl
     model = model_residual_m(xy, st, sr, at)
     if model < 1e-3:
         return None
-    f = learn_factor(drift, model, cfg.odometry_sigma_factor_min, cfg.odometry_sigma_factor_max)
-    return OdometryTrust(f, drift, model, int(keep.sum()))
+    f = learn_factor(drift_low, drift, model, cfg.odometry_sigma_factor_min, cfg.odometry_sigma_factor_max)
+    return OdometryTrust(f, drift_low, drift, model, int(keep.sum()))

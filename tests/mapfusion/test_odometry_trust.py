@@ -94,6 +94,8 @@ def test_the_drift_is_bounded_above_its_true_value_and_not_far_above(sigma, drif
     r2 = 2 * sigma * sigma * (1 - 2 / m) + drift * drift
     got = drift_residual_m(np.full(m, math.sqrt(r2)), np.full(m, sigma))
     assert drift <= got <= math.sqrt(drift * drift + 4 * sigma * sigma / math.sqrt(m)) + 1e-12
+    low = drift_residual_m(np.full(m, math.sqrt(r2)), np.full(m, sigma), confidence=-2.0)
+    assert math.sqrt(max(drift * drift - 4 * sigma * sigma / math.sqrt(m), 0.0)) - 1e-12 <= low <= drift + 1e-12
 
 
 def test_residuals_below_the_fixes_noise_do_not_make_the_odometry_better_than_the_fixes_can_tell():
@@ -113,11 +115,26 @@ def test_bad_inputs_raise_a_specific_error():
         FusionConfig(odometry_sigma_factor_min=2.0, odometry_sigma_factor_max=1.0)
 
 
-def test_the_factor_is_the_ratio_within_its_limits():
-    assert learn_factor(2.0, 1.0, 0.05, 10.0) == 2.0
-    assert learn_factor(0.001, 1.0, 0.05, 10.0) == 0.05
-    assert learn_factor(50.0, 1.0, 0.05, 10.0) == 10.0
-    assert learn_factor(1.0, 0.0, 0.05, 10.0) == 1.0
+def test_the_factor_moves_only_as_far_as_the_window_shows():
+    """Loosened by the drift's lower bound, tightened by its upper bound, within the limits; 1 where the bounds
+    straddle the model's residual (metre-level fixes over a short window: they cannot tell)."""
+    assert learn_factor(2.0, 3.0, 1.0, 0.05, 10.0) == 2.0
+    assert learn_factor(0.001, 0.002, 1.0, 0.05, 10.0) == 0.05
+    assert learn_factor(50.0, 60.0, 1.0, 0.05, 10.0) == 10.0
+    assert learn_factor(0.5, 2.0, 1.0, 0.05, 10.0) == 1.0
+    assert learn_factor(0.0, 0.3, 1.0, 1.0, 3.0) == 1.0  # a floor of 1: never tightened
+    assert learn_factor(1.0, 2.0, 0.0, 0.05, 10.0) == 1.0
+
+
+def test_noise_only_residuals_under_metre_fixes_leave_the_sigma_alone():
+    """The residuals a perfect odometry leaves under 2 m fixes (exactly their noise): the bounds straddle any model
+    residual between them, and the lower one is 0."""
+    m, sigma = 40, 2.0
+    r = np.full(m, math.sqrt(2 * sigma * sigma * (1 - 2 / m)))
+    low = drift_residual_m(r, np.full(m, sigma), confidence=-2.0)
+    high = drift_residual_m(r, np.full(m, sigma))
+    assert low == 0.0 and high > 1.0
+    assert learn_factor(low, high, 0.2, 1.0, 3.0) == 1.0
 
 
 @pytest.fixture(scope="module")
