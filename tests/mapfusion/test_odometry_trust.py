@@ -161,14 +161,14 @@ def _fused_factor(road: RoadMap, cfg: FusionConfig, ox, oy, oyaw, truth, gps_sig
 def test_the_engine_trusts_a_perfect_odometry_more_and_a_drifting_one_less(grid, case):
     """A perfect odometry under centimetre fixes is learned better than the configured σ say; one whose heading
     drifts 0.5°/100 m and whose steps carry 5 cm of noise, under 1 m fixes, worse. With the default limits it only
-    loosens (at most 3×); not learned (the default): 1 either way."""
+    loosens (at most 3×), and it is on by default; not learned: 1 either way."""
     truth = synthetic_truth("random", n=2000, speed_mps=10.0, seed=4)
     truth.x_m += 100.0
     truth.y_m += 100.0
     cfg = {"both ways": FusionConfig(use_map=False, odometry_sigma_learned=True, odometry_sigma_factor_min=0.05,
                                      odometry_sigma_factor_max=10.0),
-           "defaults": FusionConfig(use_map=False, odometry_sigma_learned=True),
-           "off": FusionConfig(use_map=False)}[case]
+           "defaults": FusionConfig(use_map=False),
+           "off": FusionConfig(use_map=False, odometry_sigma_learned=False)}[case]
     perfect = _fused_factor(grid, cfg, truth.x_m, truth.y_m, truth.yaw_rad, truth, 0.01)
     ox, oy, oyaw = drifting_odometry(truth.x_m, truth.y_m, truth.yaw_rad, seed=1,
                                      yaw_drift_rad_per_m=math.radians(0.005), noise_m=0.05)
