@@ -332,6 +332,8 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
                 track.online[k] = sm.last_updated_pose
         if self.cfg.map_relocalisation:
             self._search_when_lost(k, pred)
+        if self._gap_pending is not None:
+            self._recarry_gap(k)
 
     def _map_prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3) -> bool:
         """Add the map prior on frame k if its predicted pose is off its road; True if added."""

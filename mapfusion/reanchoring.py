@@ -58,6 +58,7 @@ class Reanchoring:
         self._search = Search(self.road, self.cfg)  # re-localisation on the road network (issue 17)
         self._road_steps: dict[int, gtsam.Pose3] = {}  # outages' steps along the road graph, by frame
         self._follower: RoadFollower | None = None
+        self._gap_pending: tuple[int, gtsam.Pose3, float] | None = None  # the last gap carried: frame, pose before, m
         self.relocalised_at = []  # (time, distance searched) of each map re-localisation
         self._checked_fix_t = math.nan  # the last fix whose silence started a search
         self._map_anchor: tuple[int, Region] | None = None  # the last map re-anchoring: its frame, its search's region
@@ -126,12 +127,14 @@ class Reanchoring:
         ``outage_step_fraction`` of its length (the road follower's spread, and the gap's search's guess)."""
         return self.cfg.reloc_sigma_m + self.cfg.outage_step_fraction * length_m
 
-    def _along_road(self, k: int, prev: gtsam.Pose3) -> gtsam.Pose3:
+    def _along_road(self, k: int, prev: gtsam.Pose3, length_m: float | None = None) -> gtsam.Pose3:
         """The step into frame k. After an odometry outage longer than ``reloc_gap_s`` with ``outage_step =
         road`` and the map: as far as the odometry's guess (the last velocity straight on) goes, but along the
         road graph from the road ``prev`` is matched to (a tunnel's curve, the road beyond a junction nearest
-        the guess), held for re-use (a restart re-adds it)."""
-        step = self._step(k)
+        the guess), held for re-use (a restart re-adds it). ``length_m``: carried this far instead of the
+        odometry's guess (``outage_speed_after_s``)."""
+        assert self.alignment is not None
+        step = self.track.step(k, self.alignment.scale)
         cfg, t = self.cfg, self.track.t
         if (cfg.outage_step is not OutageStep.road or not cfg.use_map or cfg.state is not StateModel.planar
                 or t[k] - t[k - 1] <= cfg.reloc_gap_s):
@@ -145,7 +148,10 @@ class Reanchoring:
             self._follower = RoadFollower(self.road, dataclasses.replace(cfg, reloc_uturn_at_vertex=0.0),
                                           cfg.reloc_seed)
         tr = step.translation()
-        length_m = math.sqrt(tr.dot(tr))
+        guessed_m = math.sqrt(tr.dot(tr))
+        if length_m is None:
+            length_m = guessed_m
+            self._gap_pending = (k, prev, guessed_m)
         # which way at a junction: the guess turns by the odometry's own turn over the gap, as a constant turn
         half = 0.5 * self._jumps.gap_yaw_rad if cfg.outage_turn else 0.0
         chord = length_m * (math.sin(half) / half if abs(half) > 1e-9 else 1.0)
@@ -177,6 +183,36 @@ class Reanchoring:
         gap_s = self.track.t[k] - self.track.t[k - 1]
         if gap_s > self.cfg.reloc_gap_s:
             self._gate.open(factors.outage_sigma_m(self.cfg, step, gap_s), k)
+
+    def _recarry_gap(self, k: int) -> None:
+        """``outage_speed_after_s`` after the odometry resumed from the last gap carried along the road (frame k,
+        the last): that gap's step carried again at the mean of the speeds before it and since (a vehicle that
+        sped up or slowed down unseen is placed by both), and, when the lengths differ by more than 5% and 10 m,
+        the estimate moved by the difference and the smoother restarted there."""
+        assert self._gap_pending is not None
+        kg, prev, guessed_m = self._gap_pending
+        t, raw = self.track.t, self.track.raw
+        if t[k] - t[kg] < self.cfg.outage_speed_after_s:
+            return
+        self._gap_pending = None
+        was_road, now = self._road_steps.get(kg), self.track.online[k]
+        if self.cfg.outage_speed_after_s <= 0 or was_road is None or now is None or self._smoother is None:
+            return
+        moved = raw[k].translation() - raw[kg].translation()
+        assert self.alignment is not None
+        v_after = math.sqrt(moved.dot(moved)) * self.alignment.scale / max(t[k] - t[kg], 1e-3)
+        length_m = 0.5 * (guessed_m + v_after * (t[kg] - t[kg - 1]))
+        if abs(length_m - guessed_m) <= max(10.0, 0.05 * guessed_m):  # (not worth a restart)
+            return
+        log.info("t=%.1f s: the gap into t=%.1f s carried again at the speeds on both sides: %.0f m, not %.0f m",
+                 t[k], t[kg], length_m, guessed_m)
+        moved_by = prev.compose(self._along_road(kg, prev, length_m)).compose(prev.compose(was_road).inverse())
+        pose = level(moved_by.compose(now))
+        sigma = max(self._pos_sigma, self.cfg.reloc_sigma_m)
+        noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, math.radians(self.cfg.outage_rot_sigma_deg),
+                                                     sigma))
+        self._restart_from(k, pose, noise, sigma)
+        self._update()
 
     def _note_outage_in_batch(self) -> None:
         """The initialisation's frames hold an outage: the batch gated the fixes after it against the
