@@ -38,15 +38,14 @@ def bend(tmp_path_factory) -> tuple[RoadMap, np.ndarray]:
     return road, road.xy_m[0] - pts[0]
 
 
-def _drive(bend: tuple[RoadMap, np.ndarray], mode: OutageStep, use_map: bool = True):
-    """10 m/s from the start, a fix every second for the first 130 s only; the VO out from 140 s to 180 s (in the
-    bend) and resuming with a 500 m step the wrong way (its own guess, at a plausible speed). Returns the
-    online error at 180 s and 190 s (m)."""
+def _feed(bend: tuple[RoadMap, np.ndarray], cfg: FusionConfig, s_at, resumed: gtsam.Pose3 | None = None) -> MapFusion:
+    """An engine fed 190 s along the bend at arc length ``s_at(t)``: a fix every second for the first 130 s, the VO
+    out from 140 s to 180 s and resuming with ``resumed`` as its step (its own guess), or the true one."""
     road, (ox, oy) = bend
-    eng = MapFusion(road, FusionConfig(outage_step=mode, use_map=use_map), odometry_rate_hz=10.0)
+    eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
     prev = None
     for k in range(1901):
-        x, y, yaw = _pose_at(1.0 * k)
+        x, y, yaw = _pose_at(s_at(0.1 * k))
         x, y = x + ox, y + oy
         if k % 10 == 0 and k <= 1300:
             lat, lon = road.projection.to_geo(x, y)
@@ -55,10 +54,20 @@ def _drive(bend: tuple[RoadMap, np.ndarray], mode: OutageStep, use_map: bool = T
             continue
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x, y, 0.0))
         rel = gtsam.Pose3() if prev is None else prev.between(pose)
-        if k == 1800:  # the re-initialised VO's guess: 500 m backwards
-            rel = gtsam.Pose3(gtsam.Rot3.Yaw(0.4), gtsam.Point3(-500.0, 0.0, 0.0))
+        if k == 1800 and resumed is not None:
+            rel = resumed
         eng.add_odometry(0.1 * k, rel.matrix())
         prev = pose
+    return eng
+
+
+def _drive(bend: tuple[RoadMap, np.ndarray], mode: OutageStep, use_map: bool = True):
+    """10 m/s from the start, a fix every second for the first 130 s only; the VO out from 140 s to 180 s (in the
+    bend) and resuming with a 500 m step the wrong way (its own guess, at a plausible speed). Returns the
+    online error at 180 s and 190 s (m)."""
+    road, (ox, oy) = bend
+    eng = _feed(bend, FusionConfig(outage_step=mode, use_map=use_map), lambda t: 10.0 * t,
+                resumed=gtsam.Pose3(gtsam.Rot3.Yaw(0.4), gtsam.Point3(-500.0, 0.0, 0.0)))
     t_s, online = eng.online_estimates()
     out = []
     for t in (180.0, 190.0):
@@ -209,19 +218,7 @@ def _speeding_drive(bend: tuple[RoadMap, np.ndarray], cfg: FusionConfig) -> floa
             return 1400.0 + 10.0 * (t - 140.0) + 0.125 * (t - 140.0) ** 2
         return 2000.0 + 20.0 * (t - 180.0)
 
-    eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
-    prev = None
-    for k in range(1901):
-        x, y, yaw = _pose_at(s_at(0.1 * k))
-        x, y = x + ox, y + oy
-        if k % 10 == 0 and k <= 1300:
-            lat, lon = road.projection.to_geo(x, y)
-            eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
-        if 1400 < k < 1800:
-            continue
-        pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x, y, 0.0))
-        eng.add_odometry(0.1 * k, (gtsam.Pose3() if prev is None else prev.between(pose)).matrix())
-        prev = pose
+    eng = _feed(bend, cfg, s_at)
     t_s, online = eng.online_estimates()
     x, y, _ = _pose_at(s_at(190.0))
     return math.hypot(online[-1].x() - x - ox, online[-1].y() - y - oy)
@@ -229,9 +226,9 @@ def _speeding_drive(bend: tuple[RoadMap, np.ndarray], cfg: FusionConfig) -> floa
 
 def test_a_gap_is_carried_again_at_the_speeds_on_both_sides(bend):
     """The vehicle sped up from 10 to 20 m/s while the VO was out for 40 s: carried at the speed before the gap the
-    estimate resumes 200 m short along the road and stays so; with ``outage_speed_after_s`` (1 s, the default) the gap is carried again
-    a second after the VO resumed, at the mean of both speeds (15 m/s, the truth's 600 m), and the estimate is
-    within 15 m of the truth 10 s later."""
+    estimate resumes 200 m short along the road and stays so; with ``outage_speed_after_s`` (1 s, the default) the
+    gap is carried again a second after the VO resumed, at the mean of both speeds (15 m/s, the truth's 600 m), and
+    the estimate is within 15 m of the truth 10 s later."""
     before = _speeding_drive(bend, FusionConfig(outage_speed_after_s=0.0))
     after = _speeding_drive(bend, FusionConfig())
     assert FusionConfig().outage_speed_after_s == 1.0
