@@ -928,6 +928,16 @@ class FusionConfig:
                                        "reloc_gap_margin_m + this × the gap, and the opened GPS gate's σ at least "
                                        "this × the gap.",
                                        unit="m/s", min=0.0, max=100.0, source="issue 17: city speeds")
+    reloc_gap_reach_sigmas: float = param(
+        1.0,
+        "The search region after an odometry gap also reaches the step carried over it (outage_step) plus this many "
+        "of that step's σ (reloc_sigma_m + outage_step_fraction × its length): a vehicle may speed up in the gap, "
+        "and the carried step assumes the speeds at its ends; 0: the carried step's length alone.",
+        min=0.0, max=10.0,
+        source="issue 17, session 37: rain-tunnel Andorra vo s2 drove 27 m/s in a 106 s tunnel gap carried at "
+               "19-25 m/s; its search's 2,612 m region ended 300 m short of the vehicle and converged on a look-alike "
+               "860 m off",
+    )
     reloc_gap_guess_floor: float = param(
         0.05,
         "The search begun after an odometry gap starts from the engine's own guess (the step carried along the "

@@ -49,8 +49,9 @@ class MapSearching(FixRegistering):
             # did (the engine's own guess across the gap; the odometry's own step may have jumped: not that one)
             prev = self.track.online[k - 1] or pred
             reach = gap_s * self.cfg.reloc_gap_speed_mps
-            if self.cfg.outage_step is not OutageStep.odometry:
-                reach = max(reach, math.hypot(pred.x() - prev.x(), pred.y() - prev.y()))
+            if self.cfg.outage_step is not OutageStep.odometry:  # (the carried step, and its σ: the speed in the gap)
+                carried = math.hypot(pred.x() - prev.x(), pred.y() - prev.y())
+                reach = max(reach, carried + self.cfg.reloc_gap_reach_sigmas * self._carried_sigma_m(carried))
             region = Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + reach)
             search.begin(self._still_open(region, reach), frame=k, guess=self._gap_guess(prev, pred))
             return

@@ -330,6 +330,50 @@ def test_a_search_after_a_long_fast_outage_covers_where_the_vehicle_went():
         assert math.hypot(p.x() - x[-1], p.y() - y[-1]) < 15.0, seed
 
 
+
+def _sped_up_in_the_gap(road, seed: int, gap: range, v_mps: float, v_gap_mps: float):
+    """A drive at ``v_mps`` that goes ``v_gap_mps`` through the frames of ``gap`` (10 Hz): truth and odometry."""
+    x1, y1, yaw1, _ = graph_route(road, seed, 4000.0, spacing_m=0.5, start_edge=0)
+    speed = np.where(np.isin(np.arange(1, 2000), gap), v_gap_mps, v_mps)
+    s_m = np.concatenate(([0.0], np.cumsum(0.1 * speed)))
+    idx = np.minimum(np.round(s_m / 0.5).astype(int), len(x1) - 1)
+    x, y, yaw = x1[idx], y1[idx], yaw1[idx]
+    n = int(np.searchsorted(idx, len(x1) - 1))  # (the route's end)
+    ox, oy, oyaw = drifting_odometry(x[:n], y[:n], yaw[:n], seed, heading_rad=0.3, noise_m=0.02)
+    return x[:n], y[:n], ox, oy, oyaw
+
+
+def test_a_search_after_a_gap_covers_a_vehicle_that_sped_up_in_it():
+    """The synthetic tunnel road at 20 m/s, GPS for the first 20 s, then the VO blind for 25 s in which the vehicle
+    drives 26 m/s: the step carried over the gap (the speeds at both ends, 20 m/s) falls 150 m short, so a region
+    of the carried step's length alone (100 m + 500 m) misses the truth by ~50 m. reloc_gap_reach_sigmas = 1 adds
+    the carried step's σ (reloc_sigma_m + outage_step_fraction × 500 m). Rain-tunnel Andorra vo s2 (27 m/s in a
+    106 s tunnel carried at 19-25 m/s) is where this was found: its search converged 860 m off."""
+    from mapfusion import MapFusion
+
+    road = RoadMap.from_osm(MAPS / "synthetic" / "tunnel.osm")
+    lost, resumed = 220, 470
+    x, y, ox, oy, oyaw = _sped_up_in_the_gap(road, 1, range(lost, resumed + 1), 20.0, 26.0)
+    for sigmas, inside in ((0.0, False), (1.0, True)):
+        eng = MapFusion(road, FusionConfig(map_relocalisation=True, road_fixes=False, reloc_gap_reach_sigmas=sigmas),
+                        odometry_rate_hz=10.0)
+        last, region = None, None
+        for k in range(resumed + 1):
+            if k % 2 == 0 and k < 200:
+                lat, lon = road.projection.to_geo(x[k], y[k])
+                eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
+            if lost <= k < resumed:
+                continue
+            rel = odometry_step(ox, oy, oyaw, k) if last is None or last == k - 1 else \
+                np.linalg.inv(_abs(ox, oy, oyaw, last)) @ _abs(ox, oy, oyaw, k)
+            eng.add_odometry(0.1 * k, rel)
+            last = k
+        assert eng.initialised_at is not None and eng.initialised_at < 0.1 * lost
+        assert eng._search.active is not None
+        region = eng._search.active.region
+        off = math.hypot(x[resumed] - region.x_m, y[resumed] - region.y_m)
+        assert (off < region.radius_m - 25.0) is inside and (off > region.radius_m) is not inside, (sigmas, off, region)
+
 def test_no_search_acts_while_gps_comes(road):
     """With fixes every second to the end, GPS places the estimate: map_relocalisation adds no re-anchoring,
     and the estimate is the one without it."""
