@@ -104,20 +104,34 @@ class OnlineError:
     lateral_rmse_m: float
     longitudinal_rmse_m: float
     frames: int
+    end_m: float | None = None  # median error over the last END_WINDOW_S (None: no times given)
 
 
-def online_error(truth_xy: np.ndarray, truth_yaw_rad: np.ndarray, estimate_xy: np.ndarray) -> OnlineError:
-    """RMSE and max of the position error, and its parts across and along the true heading."""
+#: The window at a drive's end over which ``OnlineError.end_m`` is the median error: where the estimate ends up
+#: (found again, or still lost), which the ATE's alignment over the whole drive does not say.
+END_WINDOW_S = 60.0
+
+
+def online_error(truth_xy: np.ndarray, truth_yaw_rad: np.ndarray, estimate_xy: np.ndarray,
+                 t_s: np.ndarray | None = None) -> OnlineError:
+    """RMSE and max of the position error, and its parts across and along the true heading; with the frames'
+    times ``t_s`` (s, non-decreasing) also the median error over the last ``END_WINDOW_S`` of them."""
     gt = np.asarray(truth_xy, float)[:, :2]
     est = np.asarray(estimate_xy, float)[:, :2]
     _check_pair(gt, est, "online error", min_n=1)
+    if t_s is not None and np.shape(t_s) != (len(gt),):
+        raise MetricsError(f"online error: {np.shape(t_s)} times for {len(gt)} poses")
     d = est - gt
     c, s = np.cos(truth_yaw_rad), np.sin(truth_yaw_rad)
     lon = c * d[:, 0] + s * d[:, 1]
     lat = -s * d[:, 0] + c * d[:, 1]
     e = np.hypot(d[:, 0], d[:, 1])
     rms = lambda v: float(np.sqrt(np.mean(v * v)))  # noqa: E731
-    return OnlineError(rms(e), float(e.max()), rms(lat), rms(lon), len(e))
+    end = None
+    if t_s is not None:
+        t = np.asarray(t_s, float)
+        end = float(np.median(e[t >= t[-1] - END_WINDOW_S]))
+    return OnlineError(rms(e), float(e.max()), rms(lat), rms(lon), len(e), end)
 
 
 def relocalisation_m(driven_m: np.ndarray, error_m: np.ndarray, from_m: float, within_m: float = 10.0,

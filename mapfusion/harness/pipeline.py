@@ -84,7 +84,7 @@ def _evaluate(res: FusionResult, truth: Truth, estimator: Estimator, deloc_m: fl
     ia, ib = associate(t, e.t_s)
     gt = np.column_stack([e.x_m, e.y_m, e.z_m])[ib]
     a = ate(gt, xyz[ia])
-    on = online_error(gt, e.yaw_rad[ib], xyz[ia])
+    on = online_error(gt, e.yaw_rad[ib], xyz[ia], t[ia])
     tun = zone_rmse(gt, xyz[ia], e.visually_degraded[ib])
     rpe = rpe_per_100m(gt, e.yaw_rad[ib], xyz[ia], yaw[ia])
     return estimator_metrics(estimator, a, delocalized(a, deloc_m), on, tun, rpe)
@@ -402,13 +402,13 @@ def evaluate_files(truth: Path, estimate: Path, max_dt_s: float = 0.02, delocali
         raise InputError(f"{estimate}: only {len(ia)} poses match {truth} in time (within {max_dt_s} s)")
     a = ate(xt[ib], xe[ia])
     yt, ye = quaternion_to_yaw(qt[ib]), quaternion_to_yaw(qe[ia])
-    on = online_error(xt[ib], yt, xe[ia])
+    on = online_error(xt[ib], yt, xe[ia], te[ia])
     rpe = rpe_per_100m(xt[ib], yt, xe[ia], ye)
     scale = global_scale(xt[ib], xe[ia]) if fit_scale else 1.0
     k = kitti_errors(tum_to_matrices(xt[ib], qt[ib]), tum_to_matrices(xe[ia], qe[ia]), scale)
     return {"frames": int(len(ia)), "ate_m": a, "delocalized": delocalized(a, delocalization_m),
             "online_rmse_m": on.rmse_m, "online_max_m": on.max_m, "online_lateral_rmse_m": on.lateral_rmse_m,
-            "online_longitudinal_rmse_m": on.longitudinal_rmse_m, "rpe_per_100m_m": rpe,
+            "online_longitudinal_rmse_m": on.longitudinal_rmse_m, "online_end_m": on.end_m, "rpe_per_100m_m": rpe,
             "kitti_t_err_percent": k.t_err_percent, "kitti_r_err_deg_per_100m": k.r_err_deg_per_100m,
             "kitti_segments": k.segments, "kitti_scale": scale}
 

@@ -40,7 +40,7 @@ def estimator_metrics(e: Estimator, ate_m: float, delocalized: bool, online: Onl
     """The contract's per-estimator keys of one run."""
     v = e.value
     return {ate_key(e): ate_m, delocalized_key(e): delocalized,
-            f"online_rmse_{v}_m": online.rmse_m, f"online_max_{v}_m": online.max_m,
+            f"online_rmse_{v}_m": online.rmse_m, f"online_max_{v}_m": online.max_m, f"online_end_{v}_m": online.end_m,
             f"online_lateral_rmse_{v}_m": online.lateral_rmse_m,
             f"online_longitudinal_rmse_{v}_m": online.longitudinal_rmse_m,
             f"tunnel_rmse_{v}_m": tunnel_rmse_m, f"rpe_100m_{v}_m": rpe_100m_m}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import subprocess
@@ -297,6 +298,8 @@ def test_run_writes_every_contract_file(tmp_path):
     for k in METRIC_KEYS:
         assert k in metrics, k
     assert metrics["lost_events"] == 0 and metrics["lost_s"] == 0.0  # the single-frame default never says lost
+    for v in ("odometry", "mapfusion"):  # where each estimate ends: at most its worst error, at least 0
+        assert 0.0 <= metrics[f"online_end_{v}_m"] <= metrics.get(f"online_max_{v}_m", math.inf), v
     counted = json.loads((out / "r1" / "fusion_events.json").read_text())["counters"]
     assert (metrics["road_fixes"], metrics["road_fixes_gated"]) == (counted["road_fixes"], counted["road_fixes_gated"])
     lines = (out / "results.jsonl").read_text().splitlines()

@@ -98,6 +98,29 @@ def test_online_error_parts():
     assert zone_rmse(gt, est, np.arange(10) < 3) == pytest.approx(2.0)
 
 
+
+def test_the_end_error_is_where_a_found_again_estimate_ends():
+    """A drive lost by 500 m for its first 240 s and 3 m off after: its RMSE says lost, its end error 3 m (the
+    median over the last 60 s); without times there is none; times of another length are refused."""
+    t = np.arange(0.0, 300.0, 0.1)
+    gt = np.column_stack([10.0 * t, np.zeros_like(t)])
+    est = gt + np.where(t < 240.0, 500.0, 3.0)[:, None] * (0.0, 1.0)
+    e = online_error(gt, np.zeros_like(t), est, t)
+    assert e.rmse_m > 400.0 and e.end_m == pytest.approx(3.0)
+    assert online_error(gt, np.zeros_like(t), est).end_m is None
+    with pytest.raises(MetricsError):
+        online_error(gt, np.zeros_like(t), est, t[:-1])
+
+
+@given(st.lists(st.floats(0.0, 1e4), min_size=1, max_size=200), st.floats(0.05, 5.0))
+def test_the_end_error_is_the_median_over_the_last_minute(errors, period_s):
+    err = np.asarray(errors)
+    t = period_s * np.arange(len(err))
+    gt = np.zeros((len(err), 2))
+    est = np.column_stack([np.zeros_like(err), err])
+    last = t >= t[-1] - 60.0
+    assert online_error(gt, np.zeros_like(err), est, t).end_m == pytest.approx(float(np.median(err[last])))
+
 def test_rpe_zero_for_a_rigid_copy_and_sensitive_to_drift():
     t = np.arange(0, 500.0)
     gt = np.column_stack([t, np.zeros_like(t)])
