@@ -8,6 +8,7 @@ re-anchors the estimate at once, without a search."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -59,7 +60,8 @@ class MapSearching(FixRegistering):
             assoc.became_lost = False
             if search.active is None:  # (a running search goes on: its particles know more than a new one's)
                 x, y = assoc.explained_xy or (pred.x(), pred.y())
-                search.begin(self._doubting(k, search.lost_region(x, y, assoc.unexplained_m)), frame=k)
+                f = self.cfg.reloc_lost_scale_factor  # (relative to the scale the search is fed at)
+                search.begin(self._doubting(k, search.lost_region(x, y, assoc.unexplained_m)), (1.0 / f, f), frame=k)
         elif search.active is None and self._gps_went_silent(k) and self._registered_fix_t != fixes[-1][0] \
                 and self._gps_left_it_off_the_roads(k):
             self._search_since_gps(k, pred)  # a second opinion on where GPS left it (the fixes not placed already)
@@ -202,6 +204,10 @@ class MapSearching(FixRegistering):
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
                  math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
+        if active.particles.scale_free and active.feed_scale is not None and self.alignment is not None:
+            scale = active.feed_scale * loc.scale  # (the search's scale is relative to the one it was fed at)
+            log.info("the search's scale re-scales the odometry: %.4f → %.4f", self.alignment.scale, scale)
+            self.alignment = dataclasses.replace(self.alignment, scale=scale)
         self._reanchor_on_map(k, pred, pose, max(loc.spread_m, 2.0), max(loc.yaw_spread_rad, math.radians(2.0)),
                               active.k0 if active.k0 is not None else k, active.region, loc.driven_m)
         self._search.watch(active)
