@@ -379,8 +379,9 @@ def test_a_lost_search_over_scales_finds_a_vehicle_whose_odometry_changed_scale(
     """GPS for 40 s, then the odometry's scale jumps by 25% (a monocular VO's): the engine keeps the scale GPS
     measured, overshoots its turns and is lost. A lost search at that scale (reloc_lost_scale_factor 1) converges on
     look-alikes (measured: these two routes end 451 and 924 m off); one over scales within ×/÷ 1.3 finds the vehicle
-    and the scale (measured: 5.1 and 5.9 m, scale 0.816 and 0.804 for the true 0.8). Of seven 3 km routes tried, five were
-    lost at the fixed scale and four of those found within 8 m with the search over scales (the fifth 25 m)."""
+    and the scale (measured: 5.1 and 5.9 m, scale 0.816 and 0.804 for the true 0.8). Of seven 3 km routes tried,
+    five were lost at the fixed scale and four of those found within 8 m with the search over scales (the fifth
+    25 m)."""
     for seed in (1, 7):
         x, y, yaw, _ = graph_route(road, seed, 2000.0)
         ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
