@@ -72,7 +72,11 @@ class MapSearching(FixRegistering):
             return
         active = search.active
         loc = search.feed(*self._search_pose(k, active), k)
-        if loc is None or math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
+        if loc is None:
+            return
+        if math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
+            log.info("t=%.1f s: the search's answer, %.0f m from the estimate, confirms it", self.track.t[k],
+                     math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
             return
         if self._rival_at_estimate(k, pred, loc, active):
             search.hold(active)  # (reloc_reweigh_held: weighed again at its next steps, until the rival mass has gone)
