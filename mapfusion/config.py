@@ -1138,6 +1138,17 @@ class FusionConfig:
     init_stall_min_samples: int = param(
         5, "Scale samples needed for such an early initialisation.", min=1, max=10000, source="robustness (issue 6)"
     )
+    init_fit_min_extent_m: float = param(
+        20.0,
+        "When GPS stalls (init_stall_s) before the scale windows took init_stall_min_samples samples (fixes that "
+        "never spanned a chord of scale_min_distance_m: a drive circling a block), initialise by a least-squares "
+        "similarity fit to the fixes if they spread at least this far (RMS about their mean; at least "
+        "scale_fit_min_fixes fixes); 0: wait for more fixes, as before.",
+        unit="m", min=0.0, max=10000.0,
+        source="issue 17 (never lost for good): a 3 km Helsinki drive whose 40 s of fixes circled a block (RMS spread "
+               "35 m, largest chord over 36 fixes 105 m) never initialised; 20 m: a 2 m σ fix spread over 20 m "
+               "fixes the heading to ~1° with 10 fixes",
+    )
     init_prior_yaw_sigma_deg: float = param(
         10.0,
         "Yaw σ of the prior on the first frame.",

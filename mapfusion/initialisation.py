@@ -214,19 +214,16 @@ class Initialiser:
         self.scale_estimator.add_gps(t, x, y, sigma)
 
     def try_align(self, track: Track) -> Alignment | None:
-        """The alignment once the windows have enough samples (or GPS stalled with a few), or None."""
+        """The alignment once the windows have enough samples (or GPS stalled with a few, or with too few but
+        fixes spread far enough for a similarity fit: :meth:`_align_by_fit`), or None."""
         cfg = self.cfg
+        if len(self.fixes) < cfg.init_min_fixes or not track.t:
+            return None
         est = self.scale_estimator.estimate()
-        if est is None or len(self.fixes) < cfg.init_min_fixes or not track.t:
-            return None
-        stalled = (track.t[-1] - self.fixes[-1][0] > cfg.init_stall_s) and est.samples >= cfg.init_stall_min_samples
-        if not (self.scale_estimator.ready or stalled):
-            return None
-        if cfg.state is StateModel.planar and track.level_rot is None:
-            angle = track.level_frame()  # with every frame of the initialisation window
-            if angle is not None and angle > 0.0:
-                self.scale_estimator.replace_positions([p.translation() for p in track.raw])
-                log.info("odometry frame levelled by %.2f°", math.degrees(angle))
+        stalled = track.t[-1] - self.fixes[-1][0] > cfg.init_stall_s
+        if est is None or not (self.scale_estimator.ready or stalled and est.samples >= cfg.init_stall_min_samples):
+            return self._align_by_fit(track, est) if stalled and cfg.init_fit_min_extent_m > 0 else None
+        self._level(track)
         g = np.array([(t, x, y) for t, x, y, _ in self.fixes])
         g = g[g[:, 0] <= track.t[-1] + 1e-9]
         g = g[g[:, 0] >= track.t[0] - 1e-9]
@@ -245,10 +242,34 @@ class Initialiser:
                  track.t[-1], s, est.sigma, est.samples, math.degrees(rot))
         return Alignment(s, est.sigma, rot, trans)
 
-    def fit(self, track: Track, since_t: float = -math.inf) -> Alignment | None:
+    def _level(self, track: Track) -> None:
+        """The planar model's odometry frame levelled with every frame of the initialisation window (once)."""
+        if self.cfg.state is StateModel.planar and track.level_rot is None:
+            angle = track.level_frame()
+            if angle is not None and angle > 0.0:
+                self.scale_estimator.replace_positions([p.translation() for p in track.raw])
+                log.info("odometry frame levelled by %.2f°", math.degrees(angle))
+
+    def _align_by_fit(self, track: Track, est: ScaleEstimate | None) -> Alignment | None:
+        """GPS stalled before the windows took ``init_stall_min_samples`` samples — a drive whose fixes never
+        spanned a chord of ``scale_min_distance_m`` (one that circled a block): the alignment is the least-squares
+        similarity fit to the fixes (:meth:`fit`) when they spread ``init_fit_min_extent_m`` about their mean, or
+        None (the engine waits for more fixes)."""
+        self._level(track)
+        a = self.fit(track, min_extent_m=self.cfg.init_fit_min_extent_m)
+        if a is None:
+            return None
+        self.windows = ScaleEstimate(a.scale, a.scale_sigma, est.samples if est is not None else 0)
+        log.info("initialised at t=%.1f s by a similarity fit to %d fixes (%d scale samples): scale %.4f ± %.4f, "
+                 "heading offset %.2f°", track.t[-1], len(self.fixes), self.windows.samples, a.scale, a.scale_sigma,
+                 math.degrees(a.rot_rad))
+        return a
+
+    def fit(self, track: Track, since_t: float = -math.inf, min_extent_m: float | None = None) -> Alignment | None:
         """Least-squares similarity between the raw odometry and the fixes after ``since_t``
         (outliers beyond the fit's bound of a first fit dropped), or None when there are too few
-        fixes, too little motion, or the fit disagrees with the windows' median."""
+        fixes, too little motion (their RMS spread below ``min_extent_m``, by default
+        ``scale_fit_min_extent_m``), or the fit disagrees with the windows' median."""
         cfg = self.cfg
         lo, hi = max(since_t, track.t[track.first] - 0.5), track.t[-1] + 0.5
         g = np.array([f for f in self.fixes if lo <= f[0] <= hi]).reshape(-1, 4)
@@ -263,7 +284,7 @@ class Initialiser:
             if keep.sum() < cfg.scale_fit_min_fixes:
                 return None
         spread = float(np.sqrt(np.mean(np.sum((o[keep] - o[keep].mean(0)) ** 2, axis=1))))
-        if spread * sc < cfg.scale_fit_min_extent_m:
+        if spread * sc < (cfg.scale_fit_min_extent_m if min_extent_m is None else min_extent_m):
             return None
         sigma = float(np.median(g[keep, 3])) / (spread * math.sqrt(keep.sum()))
         if cfg.scale_sigma_honest:
