@@ -873,6 +873,12 @@ class FusionConfig:
                                   "matched to the roads (from the search's first frame on), rigidly by the "
                                   "re-anchoring's correction; the online estimates stay as they were.",
                                   source="issue 17: the path the search matched lies where its end was found")
+    reloc_mend_on_roads: bool = param(True, "With reloc_mend_back: the searched path is moved only when the moved "
+                                      "path keeps to the roads better (a share of its frames on a road) than it "
+                                      "did: an estimate the map's priors kept on its roads, tens of metres off along "
+                                      "them, is not swung about its end by the answer's heading.",
+                                      source="issue 17 (session 38): kidnapped VO jump Kotka s11, a re-anchoring 42 m "
+                                             "off turned 1,353 m of path and took its smoothed RMSE 19 -> 105 m")
     reloc_particles_per_m: float = param(10.0, "Particles per metre of road (both directions) in the search region, "
                                          "up to reloc_particles.", unit="1/m", min=0.01, max=1000.0,
                                          source="issue 17; by measurement: kidnapped seeds 1-10 / held-out 11-20, "

@@ -144,21 +144,42 @@ class FixRegistering(Reanchoring):
     def _mend_searched(self, k0: int, k1: int, was: gtsam.Pose3, now: gtsam.Pose3) -> None:
         """A map re-anchoring moved frame k1 from ``was`` to ``now``; its search matched the odometry's path from
         frame k0 on to the roads, so that path lies where the re-anchoring puts its end: the final estimates of
-        frames k0 … k1-1 are moved rigidly by the same correction (about z). The online estimates stay as they
-        were (causal)."""
+        frames k0 … k1-1 are moved rigidly by the same correction (about z) — with ``reloc_mend_on_roads``, only when
+        the moved path keeps to the roads better than the path as it was (an estimate the map's priors had kept on
+        its roads, a few tens of metres off along them, is not swung about its end by the answer's heading). The
+        online estimates stay as they were (causal)."""
         sm, track = self._smoother, self.track
         assert sm is not None
         k0 = max(k0, track.first)
         dyaw = math.remainder(now.rotation().yaw() - was.rotation().yaw(), 2.0 * math.pi)
         c, s = math.cos(dyaw), math.sin(dyaw)
         turn = gtsam.Rot3.Yaw(dyaw)
-        moved = 0
+        moves: dict[int, gtsam.Pose3] = {}
         for j in range(k0, k1):
             p = sm.smoothed.get(j)
             if p is None:
                 continue
             dx, dy = p.x() - was.x(), p.y() - was.y()
-            sm.smoothed[j] = gtsam.Pose3(turn.compose(p.rotation()),
-                                         gtsam.Point3(now.x() + c * dx - s * dy, now.y() + s * dx + c * dy, p.z()))
-            moved += 1
-        log.info("t=%.1f s: the map's correction moved the %d frames its search matched", track.t[k1], moved)
+            moves[j] = gtsam.Pose3(turn.compose(p.rotation()),
+                                   gtsam.Point3(now.x() + c * dx - s * dy, now.y() + s * dx + c * dy, p.z()))
+        if self.cfg.reloc_mend_on_roads and moves:
+            keys = list(moves)[::5]  # (a sample: the share of a path on its roads, not each frame's)
+            before = self._on_roads([p for j in keys if (p := sm.smoothed.get(j)) is not None])
+            after = self._on_roads([moves[j] for j in keys])
+            if after <= before:
+                log.info("t=%.1f s: the map's correction would take the %d frames its search matched off the roads "
+                         "(%.0f%% on them, %.0f%% as they are): left as they are", track.t[k1], len(moves),
+                         100 * after, 100 * before)
+                return
+        sm.smoothed.update(moves)
+        log.info("t=%.1f s: the map's correction moved the %d frames its search matched", track.t[k1], len(moves))
+
+    def _on_roads(self, poses: list[gtsam.Pose3]) -> float:
+        """The share of ``poses`` on a road: matched within half its width plus a lane of its centre line, heading
+        within ``prior_max_angle_deg`` of it."""
+        cfg, on = self.cfg, 0
+        for p in poses:
+            m = self.road.match(p.x(), p.y(), p.rotation().yaw(), cfg.search_radius_m, cfg.angle_weight_m_per_deg)
+            on += m is not None and m.lateral_m <= (0.5 * m.lanes + 1.0) * cfg.lane_width_m \
+                and m.angle_deg <= cfg.prior_max_angle_deg
+        return on / max(len(poses), 1)

@@ -489,6 +489,35 @@ def test_a_map_re_anchoring_mends_the_path_its_search_matched(road):
     assert [(p.x(), p.y()) for p in online_on if p is not None] == [(p.x(), p.y()) for p in online_off if p is not None]
 
 
+@pytest.mark.parametrize("on_roads", [True, False])
+def test_a_mend_that_would_take_a_path_off_its_roads_is_not_made(road, on_roads):
+    """reloc_mend_on_roads: a drive tracked on its roads under GPS; a re-anchoring whose answer turns the last frame
+    by 25° would swing the 40 s before it (about 400 m of road) off the roads: with the check the final estimates
+    stay as they were. The same path moved 150 m off its roads first (as a biased window leaves it), and mended
+    back by the same correction that undoes it, is moved either way."""
+    import gtsam
+
+    x, y, yaw, _ = graph_route(road, 3, 1200.0)
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, 3, heading_rad=0.3, noise_m=0.02)
+    cfg = FusionConfig(road_fixes=False, reloc_mend_on_roads=on_roads)
+    eng, _ = _feed(road, cfg, x, y, ox, oy, oyaw, len(x))
+    sm = eng._smoother
+    k1 = max(sm.smoothed)
+    k0 = k1 - 400
+    before = {j: sm.smoothed[j] for j in range(k0, k1)}
+    was = sm.smoothed[k1]
+    swung = gtsam.Pose3(gtsam.Rot3.Yaw(was.rotation().yaw() + math.radians(25.0)), was.translation())
+    eng._mend_searched(k0, k1, was, swung)
+    unchanged = all(sm.smoothed[j].equals(before[j], 1e-12) for j in range(k0, k1))
+    assert unchanged is on_roads
+    off = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(150.0, -150.0, 0.0))
+    for j in range(k0, k1 + 1):
+        sm.smoothed[j] = off.compose(before.get(j, was))
+    eng._mend_searched(k0, k1, off.compose(was), was)
+    err = max(math.hypot(sm.smoothed[j].x() - before[j].x(), sm.smoothed[j].y() - before[j].y()) for j in range(k0, k1))
+    assert err < 1e-6, err
+
+
 def test_a_search_beside_gps_never_moves_the_estimate_while_fixes_come(road):
     """Fixes every second to the end, all 150 m off: the estimate is lost (the map disagrees) and a search runs
     beside GPS, but GPS places the estimate: no re-anchoring, and the estimate is the one without the search."""
