@@ -144,10 +144,10 @@ class FixRegistering(Reanchoring):
     def _mend_searched(self, k0: int, k1: int, was: gtsam.Pose3, now: gtsam.Pose3) -> None:
         """A map re-anchoring moved frame k1 from ``was`` to ``now``; its search matched the odometry's path from
         frame k0 on to the roads, so that path lies where the re-anchoring puts its end: the final estimates of
-        frames k0 … k1-1 are moved rigidly by the same correction (about z) — with ``reloc_mend_on_roads``, only when
-        the moved path keeps to the roads better than the path as it was (an estimate the map's priors had kept on
-        its roads, a few tens of metres off along them, is not swung about its end by the answer's heading). The
-        online estimates stay as they were (causal)."""
+        frames k0 … k1-1 are moved rigidly by the same correction (about z) — unless the moved path would keep to the
+        roads less than ``reloc_mend_keep_ratio`` as well as the path as it was (an estimate the map's priors had
+        kept on its roads is not swung off them about its end by the answer's heading). The online estimates stay as
+        they were (causal)."""
         sm, track = self._smoother, self.track
         assert sm is not None
         k0 = max(k0, track.first)
@@ -162,11 +162,11 @@ class FixRegistering(Reanchoring):
             dx, dy = p.x() - was.x(), p.y() - was.y()
             moves[j] = gtsam.Pose3(turn.compose(p.rotation()),
                                    gtsam.Point3(now.x() + c * dx - s * dy, now.y() + s * dx + c * dy, p.z()))
-        if self.cfg.reloc_mend_on_roads and moves:
+        if self.cfg.reloc_mend_keep_ratio > 0 and moves:
             keys = list(moves)[::5]  # (a sample: the share of a path on its roads, not each frame's)
             before = self._on_roads([p for j in keys if (p := sm.smoothed.get(j)) is not None])
             after = self._on_roads([moves[j] for j in keys])
-            if after <= before:
+            if after < self.cfg.reloc_mend_keep_ratio * before:
                 log.info("t=%.1f s: the map's correction would take the %d frames its search matched off the roads "
                          "(%.0f%% on them, %.0f%% as they are): left as they are", track.t[k1], len(moves),
                          100 * after, 100 * before)

@@ -491,7 +491,7 @@ def test_a_map_re_anchoring_mends_the_path_its_search_matched(road):
 
 @pytest.mark.parametrize("on_roads", [True, False])
 def test_a_mend_that_would_take_a_path_off_its_roads_is_not_made(road, on_roads):
-    """reloc_mend_on_roads: a drive tracked on its roads under GPS; a re-anchoring whose answer turns the last frame
+    """reloc_mend_keep_ratio: a drive tracked on its roads under GPS; a re-anchoring whose answer turns the last frame
     by 25° would swing the 40 s before it (about 400 m of road) off the roads: with the check the final estimates
     stay as they were. The same path moved 150 m off its roads first (as a biased window leaves it), and mended
     back by the same correction that undoes it, is moved either way."""
@@ -499,7 +499,7 @@ def test_a_mend_that_would_take_a_path_off_its_roads_is_not_made(road, on_roads)
 
     x, y, yaw, _ = graph_route(road, 3, 1200.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, 3, heading_rad=0.3, noise_m=0.02)
-    cfg = FusionConfig(road_fixes=False, reloc_mend_on_roads=on_roads)
+    cfg = FusionConfig(road_fixes=False, reloc_mend_keep_ratio=0.5 if on_roads else 0.0)
     eng, _ = _feed(road, cfg, x, y, ox, oy, oyaw, len(x))
     sm = eng._smoother
     k1 = max(sm.smoothed)
