@@ -388,7 +388,7 @@ class FusionConfig:
         "the drift a similarity fit to the window's fixes leaves beyond the fixes' own noise over the residual those "
         "σ would leave on the same path (odometry_trust.py): loosened only as far as the drift's lower bound shows, "
         "tightened only as far as its upper bound shows, within odometry_sigma_factor_min..max. A cold start, "
-        "without fixes, keeps the configured σ.",
+        "without fixes, takes odometry_sigma_cold_factor.",
         source="issue 17: real and simulated VO drift 2-17x what the configured σ allow over the window, KITTI's own "
                "poses 0.3-1x; learned (two-sided, max 3): kitti-real 50.8 -> 38.6 m, heavy-rain 5.08 -> 3.55 m, "
                "held-out 60 drives 6.07 -> 4.79 m, every family better (docs/method.md)",
@@ -402,6 +402,20 @@ class FusionConfig:
         max=100.0,
         source="issue 17: tightened (0.05) KITTI's own poses drift 0.3-1x the configured σ, but 01 without the map "
                "0.112 -> 0.178 m (docs/method.md)",
+    )
+    odometry_sigma_cold_factor: float = param(
+        2.0,
+        "The factor on the configured odometry σ after a cold start (start_in_region), when odometry_sigma_learned "
+        "is on: no GPS window measured this odometry's drift, so it is taken between a good odometry's 1 and the "
+        "drifting VOs' 3.",
+        unit="1",
+        min=0.0,
+        exclusive_min=True,
+        max=100.0,
+        source="issue 17: cold starts on the five KITTI drives, RMSE summed over them, factor 1 / 2 / 3: simulated "
+               "rain VO 36.7 / 30.8 / 30.0 m, clear VO 30.6 / 27.8 / 26.7, rain VIO 34.1 / 28.6 / 27.3, real stereo "
+               "VO 50.6 / 48.3 / 47.5, clear VIO 18.9 / 19.2 / 22.0, KITTI's own poses 15.3 / 15.9 / 19.6 m "
+               "(docs/method.md)",
     )
     odometry_sigma_factor_max: float = param(
         3.0,

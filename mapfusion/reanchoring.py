@@ -20,6 +20,7 @@ from .errors import EngineError
 from .gps_gate import GpsGate
 from .initialisation import Initialiser
 from .metrics import umeyama
+from .motion import MotionFusion
 from .relocalise import Located, Region, RoadFollower, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
@@ -42,6 +43,7 @@ class Reanchoring:
     _association: MapAssociation
     _gate: GpsGate
     _search: Search
+    _motion: MotionFusion
     _road_fixes: RoadFixes
     _jumps: JumpGuard
     _checked_fix_t: float
@@ -117,6 +119,8 @@ class Reanchoring:
         c, s, (px, py, _) = math.cos(rot), math.sin(rot), raw.translation()
         scale, c, s = loc.scale, c * loc.scale, s * loc.scale
         sigma = max(self.cfg.reloc_scale_sigma, loc.scale_spread) * scale
+        if self.cfg.odometry_sigma_learned:  # no window measured this odometry's drift
+            self._motion.sigma_factor = self.cfg.odometry_sigma_cold_factor
         self._begin(Alignment(scale, sigma, rot, np.array([loc.x_m - (c * px - s * py), loc.y_m - (s * px + c * py)])),
                     anchor=len(self.track) - 1)
         self.counters.map_relocalisations += 1

@@ -187,6 +187,25 @@ def test_a_cold_start_without_gps_begins_where_the_vehicle_is(road, seed):
     assert math.hypot(p.x() - x[-1], p.y() - y[-1]) < 25.0
 
 
+@pytest.mark.parametrize("factor,learned,expected", [(2.5, True, 2.5), (0.5, True, 0.5), (2.5, False, 1.0)])
+def test_a_cold_start_takes_odometry_sigma_cold_factor_on_its_odometry_sigma(road, factor, learned, expected):
+    """A cold start has no GPS window to learn its odometry's σ from: with ``odometry_sigma_learned`` on, its
+    odometry factors take ``odometry_sigma_cold_factor`` times the configured σ (off: as configured), from the
+    batch of the frames the search drove over on."""
+    import gtsam
+
+    from mapfusion import factors
+
+    cfg = FusionConfig(odometry_sigma_cold_factor=factor, odometry_sigma_learned=learned)
+    eng, first, _, _ = _cold_start(road, 0, 700.0, cfg)
+    assert first is not None and eng.odometry_sigma_factor == expected
+    step = gtsam.Pose3(gtsam.Rot3.Yaw(0.01), gtsam.Point3(1.0, 0.0, 0.0))
+    plain = factors.odometry_noise(cfg, step, 1.0, 0.1).sigmas()
+    between = eng._between(len(eng.track) - 1, step=step).noiseModel().sigmas()
+    # (the planar state's roll, pitch and z hold fixed tiny σ; yaw, x and y carry the odometry's)
+    assert np.allclose(between[2:5], expected * plain[2:5]) and np.allclose(between[[0, 1, 5]], plain[[0, 1, 5]])
+
+
 def test_a_start_region_is_refused_after_the_first_frame_or_when_not_finite(road):
     from mapfusion import MapFusion
     from mapfusion.errors import EngineError
