@@ -47,6 +47,10 @@ def _across(pose: gtsam.Pose3, lateral_m: float) -> gtsam.Pose3:
     return pose.compose(gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(0.0, lateral_m, 0.0)))
 
 
+#: A heading prior needs its road straight: way-points (~1 m apart) either side of the match's within this heading.
+STRAIGHT_M = 20
+STRAIGHT_DEG = 2.0
+
 #: Most a way-point's heading may turn from the match's road's and still continue it (prior_ambiguity_line_m).
 _CONTINUES_RAD = math.radians(10.0)
 
@@ -71,6 +75,7 @@ class MapAssociation:
         self.became_lost = False  # set when the estimate becomes lost; the engine clears it
         self.explained_xy: tuple[float, float] | None = None  # the estimate where a road last explained it
         self._since_prior_m = math.inf  # odometry distance since the last map prior
+        self._since_heading_m = math.inf  # odometry distance since the last heading prior
         # the estimate's recent path: (distance, on a road?) per frame over the last reloc_gps_fit_m
         self._fit: collections.deque[tuple[float, bool]] = collections.deque()
         self._fit_m = self._fit_on_m = 0.0
@@ -268,6 +273,35 @@ class MapAssociation:
         self.counters.map_priors += 1
         self._since_prior_m = 0.0
         return m, factors.pose_prior(k, r_pose, noise)
+
+    def heading_prior(self, k: int, pred: gtsam.Pose3, m: Match | None,
+                      moved_m: float) -> gtsam.PriorFactorPose3 | None:
+        """A prior on frame k's yaw alone (``heading_prior_sigma_deg``): the road's heading, when the estimate lies on a
+        straight stretch of its road heading along it (see the field's documentation)."""
+        cfg = self.cfg
+        self._since_heading_m += moved_m
+        if cfg.heading_prior_sigma_deg <= 0 or m is None or m.is_join or \
+                self._since_heading_m < cfg.heading_prior_spacing_m or m.angle_deg > cfg.heading_prior_max_deg:
+            return None
+        if m.lateral_m > m.lanes * cfg.lane_width_m or not self._straight(m):
+            return None
+        self._since_heading_m = 0.0
+        self.counters.heading_priors += 1
+        turn = math.remainder(m.yaw_rad - pred.rotation().yaw(), 2.0 * math.pi)
+        target = pred.compose(gtsam.Pose3(gtsam.Rot3.Yaw(turn), gtsam.Point3(0.0, 0.0, 0.0)))
+        r = np.zeros((6, 6))
+        r[2, 2] = 1.0 / math.radians(cfg.heading_prior_sigma_deg)
+        return factors.pose_prior(k, target, factors.sqrt_information_noise(r, self._robust))
+
+    def _straight(self, m: Match) -> bool:
+        """The match's road keeps its heading within STRAIGHT_DEG over STRAIGHT_M either side of the way-point."""
+        road, i = self.road, m.index
+        e = int(road.edge.item(i))
+        a, b = max(int(road.edge_start[e]), i - STRAIGHT_M), min(int(road.edge_end[e]), i + STRAIGHT_M + 1)
+        if b - a < STRAIGHT_M:
+            return False
+        d = np.remainder(road.yaw_rad[a:b] - road.yaw_rad.item(i) + math.pi, 2.0 * math.pi) - math.pi
+        return bool(np.max(np.abs(d)) <= math.radians(STRAIGHT_DEG))
 
     def side_m(self, m: Match) -> float:
         """Signed offset (m, left of the direction of travel positive) of the lane the vehicle keeps to from the

@@ -466,6 +466,15 @@ class FusionConfig:
         "planar (level ground vehicle) or pose3 (the paper's free Pose3).",
         source="DESIGN item 7; chosen by measurement",
     )
+    odometry_nonholonomic: bool = param(
+        False,
+        "Each odometry step moves the vehicle along its heading (the mean of the step's start and end yaw), "
+        "forwards or backwards, by the step's own length: a wheeled vehicle does not slide sideways, so a "
+        "sideways component of the measured step (a VO's lateral drift, as raindrops on the lens make) is "
+        "an error of the odometry, not motion; false: the step as measured (the paper).",
+        source="issue 17, session 40: the cold start on KITTI 01 in rain slid 8 m across its trunk road in 3 s, "
+        "heading right, and was matched to a parallel service road (docs/method.md)",
+    )
     planar_steps: PlanarSteps = param(
         PlanarSteps.level,
         "planar state: each step on the odometry frame's local horizontal (level: the mean body up over "
@@ -561,6 +570,32 @@ class FusionConfig:
         min=0.0,
         max=180.0,
         source="DESIGN item 7 (wrong-road priors at turns); by measurement",
+    )
+    heading_prior_sigma_deg: float = param(
+        0.0,
+        "σ of a heading prior on an estimate that lies on its road (within the width that calls for a map prior), "
+        "heading within heading_prior_max_deg of it, on a straight stretch: the road's heading in yaw alone, at most "
+        "one per heading_prior_spacing_m of driving. The paper's map prior corrects only an estimate already off "
+        "its road, so a heading error grows unchecked inside the band until the estimate leaves it, by then often "
+        "nearer a parallel road; 0: none (the paper).",
+        unit="deg",
+        min=0.0,
+        max=90.0,
+        source="issue 17, session 40: the cold start on KITTI 01 left its trunk road for a parallel service road "
+        "after a 1-3 degree heading error grew inside the band (docs/method.md)",
+    )
+    heading_prior_spacing_m: float = param(
+        10.0, "At most one heading prior per this much driving.", unit="m", min=0.0,
+        source="as prior_spacing_m",
+    )
+    heading_prior_max_deg: float = param(
+        10.0,
+        "No heading prior from a match whose angle A exceeds this: an estimate turning, changing lanes or "
+        "matched to the crossing road.",
+        unit="deg",
+        min=0.0,
+        max=90.0,
+        source="a lane change turns a vehicle some 3-6 degrees",
     )
     prior_ambiguity_m: float = param(
         3.0,

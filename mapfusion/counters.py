@@ -29,6 +29,7 @@ class Counters:
     lost_events: int = 0  # road hypotheses: the estimate lost (issue 16)
     odometry_vetoed: int = 0  # odometry steps that disagreed with wheel + gyro: replaced by theirs (issue 18)
     map_relocalisations: int = 0  # the vehicle found on the road network without GPS (issue 17)
+    heading_priors: int = 0  # yaw-only priors from a straight road the estimate is on (heading_prior_sigma_deg)
     road_fixes: int = 0  # the road particles' positions added as fixes while GPS was silent (road_fixes)
     road_fixes_gated: int = 0  # and confident answers not added: not moved as the estimate did (the gate)
     wheel_frames: int = 0  # frames wheel + gyro made alone, the odometry silent (issue 18)

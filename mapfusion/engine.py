@@ -336,16 +336,20 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
             self._recarry_gap(k)
 
     def _map_prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3) -> bool:
-        """Add the map prior on frame k if its predicted pose is off its road; True if added."""
+        """Add the map prior on frame k if its predicted pose is off its road, else the heading prior if one is due
+        (``heading_prior_sigma_deg``); True if either was added."""
         dt = self.track.t[k] - self.track.t[k - 1]
         m, prior = self._association.prior(k, pred, step, dt, self._pos_sigma, self._lat_sigma)
         if self._association.lost:
             self.lost_s += dt
         self.matched_way[k] = m.way_id if m is not None else -1
-        if prior is None:
-            return False
+        if prior is None:  # (on its road: perhaps a prior on the heading alone)
+            prior = self._association.heading_prior(k, pred, m, math.hypot(step.x(), step.y()))
+            if prior is None:
+                return False
+        else:
+            self.map_prior_frames.append(k)
         self._sm.add(prior)
-        self.map_prior_frames.append(k)
         return True
 
     def _maybe_odometry_prior(self, k: int, pred: gtsam.Pose3) -> None:

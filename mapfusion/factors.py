@@ -188,7 +188,7 @@ def robust_kernel(cfg: FusionConfig):
 
 def band_prior_noise(cfg: FusionConfig, sigma_lat_m: float, robust=None) -> gtsam.noiseModel.Base:
     """The band prior's noise: σ across the road from :func:`band_update`, the map's yaw σ."""
-    return _sqrt_information_noise(band_sqrt_information(sigma_lat_m, math.radians(cfg.yaw_sigma_deg)), robust)
+    return sqrt_information_noise(band_sqrt_information(sigma_lat_m, math.radians(cfg.yaw_sigma_deg)), robust)
 
 
 def map_prior_noise(cfg: FusionConfig, road_yaw_rad: float, motion_dir_rad: float, v_lon_mps: float,
@@ -196,10 +196,10 @@ def map_prior_noise(cfg: FusionConfig, road_yaw_rad: float, motion_dir_rad: floa
     """The map prior's noise (Eq. 6 in the tangent space), under the robust kernel if given."""
     r = prior_sqrt_information(road_yaw_rad, motion_dir_rad, v_lon_mps, v_lat_mps, math.radians(cfg.yaw_sigma_deg),
                                cfg.prior_lambda_floor_m2, cfg.prior_mode, cfg.prior_map_sigma_m**2)
-    return _sqrt_information_noise(r, robust)
+    return sqrt_information_noise(r, robust)
 
 
-def _sqrt_information_noise(r: np.ndarray, robust=None) -> gtsam.noiseModel.Base:
+def sqrt_information_noise(r: np.ndarray, robust=None) -> gtsam.noiseModel.Base:
     """A noise model from a square-root information matrix, under the robust kernel if given."""
     noise = gtsam.noiseModel.Gaussian.SqrtInformation(r, False)
     return gtsam.noiseModel.Robust.Create(robust, noise) if robust is not None else noise

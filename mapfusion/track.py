@@ -202,8 +202,9 @@ class Track:
     """Odometry frames in time order, and their causal estimates (None before initialisation)."""
 
     def __init__(self, state: StateModel, nominal_period_s: float, flat: bool = False,
-                 level: LocalLevel | None = None) -> None:
+                 level: LocalLevel | None = None, nonholonomic: bool = False) -> None:
         self.state = state
+        self.nonholonomic = nonholonomic
         # planar state, steps taken in the body frame (flat) or on the local horizontal (level): the raw chain
         # is composed of each step's x, y and yaw
         self.level = level if state is StateModel.planar else None
@@ -319,17 +320,32 @@ class Track:
     def step(self, k: int, scale: float) -> gtsam.Pose3:
         """The scaled relative motion into frame k in the engine's state model."""
         if self.state is StateModel.planar:
-            return planar_step(self._planar(self.raw[k - 1]), self._planar(self.raw[k]), scale)
-        rel = self.rel[k]
-        t = rel.translation() * scale
-        return gtsam.Pose3(rel.rotation(), gtsam.Point3(*t))
+            step = planar_step(self._planar(self.raw[k - 1]), self._planar(self.raw[k]), scale)
+        else:
+            rel = self.rel[k]
+            step = gtsam.Pose3(rel.rotation(), gtsam.Point3(*(rel.translation() * scale)))
+        return along_heading(step) if self.nonholonomic else step
+
+
+def along_heading(step: gtsam.Pose3) -> gtsam.Pose3:
+    """The step with its horizontal displacement turned onto the direction a wheeled vehicle moves in
+    (``odometry_nonholonomic``): along the mean of its start and end headings, forwards or backwards as
+    the step went; its length, its z and its rotation kept."""
+    x, y, z = step.translation()
+    d = math.hypot(x, y)
+    if d == 0.0:
+        return step
+    half = 0.5 * step.rotation().yaw()
+    d = d if x >= 0.0 else -d
+    return gtsam.Pose3(step.rotation(), gtsam.Point3(d * math.cos(half), d * math.sin(half), z))
 
 
 def track_for(cfg: FusionConfig, odometry_rate_hz: float) -> Track:
     """The engine's track for a configuration: its state model and how planar steps are taken."""
     level = LocalLevel(round(cfg.level_window_s * odometry_rate_hz), cfg.outage_s) \
         if cfg.planar_steps is PlanarSteps.level else None
-    return Track(cfg.state, 1.0 / odometry_rate_hz, flat=cfg.planar_steps is PlanarSteps.body, level=level)
+    return Track(cfg.state, 1.0 / odometry_rate_hz, flat=cfg.planar_steps is PlanarSteps.body, level=level,
+                 nonholonomic=cfg.odometry_nonholonomic)
 
 
 class JumpGuard:

@@ -16,7 +16,7 @@ from mapfusion.config import FusionConfig
 from mapfusion.counters import Counters
 from mapfusion.geometry import on_line
 from mapfusion.roadmap import RoadMap
-from tests.helpers import straight_road, write_osm
+from tests.helpers import circle_road, straight_road, write_osm
 
 _TOL_M = 1.0
 _MAX = math.radians(10.0)
@@ -87,3 +87,65 @@ def test_a_parallel_road_still_gates_the_prior(split_road):
     for line_m in (0.0, _TOL_M):
         assoc, m, factor = _prior(split_road, line_m, 320.0, 7.0)
         assert m is not None and factor is None and assoc.counters.priors_gated == 1
+
+
+# ---------------------------------------------------------------- heading priors (issue 17, session 40)
+@pytest.fixture(scope="module")
+def east_road(tmp_path_factory) -> RoadMap:
+    """A straight one-lane road 400 m long heading east, centred on the map's origin."""
+    d = tmp_path_factory.mktemp("east")
+    return RoadMap.from_osm(write_osm(d, [(straight_road(400.0, 0.0, (-200.0, 0.0)), {"highway": "primary",
+                                                                                    "lanes": "1"})]), cache=False)
+
+
+@pytest.fixture(scope="module")
+def ring_road(tmp_path_factory) -> RoadMap:
+    """A one-lane ring road of 40 m radius around the map's origin (it turns 1.4 degrees per metre)."""
+    d = tmp_path_factory.mktemp("ring")
+    return RoadMap.from_osm(write_osm(d, [(circle_road(40.0), {"highway": "primary", "lanes": "1"})]), cache=False)
+
+
+def _heading_prior(road: RoadMap, x_m: float, y_m: float, yaw_rad: float, moved_m: float = 100.0, **cfg):
+    assoc = MapAssociation(road, FusionConfig(**({"heading_prior_sigma_deg": 3.0} | cfg)), Counters())
+    pred = gtsam.Pose3(gtsam.Rot3.Yaw(yaw_rad), gtsam.Point3(x_m, y_m, 0.0))
+    return assoc, pred, assoc.heading_prior(7, pred, assoc.match(pred), moved_m)
+
+
+@given(x=st.floats(-150.0, 150.0), y=st.floats(-2.9, 2.9), off_deg=st.floats(-9.9, 9.9), backwards=st.booleans())
+def test_a_heading_prior_turns_the_yaw_alone_onto_a_straight_road(east_road, x, y, off_deg, backwards):
+    road_yaw = math.pi if backwards else 0.0
+    _, pred, factor = _heading_prior(east_road, x, y, road_yaw + math.radians(off_deg))
+    assert factor is not None
+    target = factor.prior()
+    assert abs(math.remainder(target.rotation().yaw() - road_yaw, 2.0 * math.pi)) < 1e-9
+    assert np.allclose(target.translation(), pred.translation(), atol=1e-9)
+    values = gtsam.Values()
+    # anywhere on the road's heading the prior costs nothing: it says nothing of the position
+    values.insert(gtsam.symbol_shorthand.X(7), gtsam.Pose3(target.rotation(), gtsam.Point3(x + 30.0, y - 20.0, 5.0)))
+    assert factor.error(values) < 1e-12
+    turned = gtsam.Values()
+    turned.insert(gtsam.symbol_shorthand.X(7), pred)
+    assert (factor.error(turned) > 1e-6) == (abs(off_deg) > 0.01)
+
+
+@pytest.mark.parametrize("case", ["off", "too far off the road's heading", "off the road", "on a curve",
+                                  "too soon after the last"])
+def test_no_heading_prior_where_the_road_says_nothing_sure_of_the_heading(east_road, ring_road, case):
+    if case == "off":
+        assoc, _, factor = _heading_prior(east_road, 0.0, 0.0, 0.05, heading_prior_sigma_deg=0.0)
+    elif case == "too far off the road's heading":
+        assoc, _, factor = _heading_prior(east_road, 0.0, 0.0, math.radians(12.0))
+    elif case == "off the road":  # farther than the road is wide: the map prior's case
+        assoc, _, factor = _heading_prior(east_road, 0.0, 3.5, 0.0)
+    elif case == "on a curve":
+        assoc, _, factor = _heading_prior(ring_road, 40.0, 0.0, math.pi / 2)
+    else:  # one 10 m (heading_prior_spacing_m) after another, then 9 m on
+        assoc, pred, first = _heading_prior(east_road, 0.0, 0.0, 0.0)
+        assert first is not None
+        factor = assoc.heading_prior(8, pred, assoc.match(pred), 9.0)
+        assert factor is None and assoc.counters.heading_priors == 1
+        assert assoc.heading_prior(9, pred, assoc.match(pred), 1.0) is not None
+        return
+    assert factor is None and assoc.counters.heading_priors == 0
+    if case == "on a curve":  # the same estimate on a straight road gets one
+        assert _heading_prior(east_road, 0.0, 0.0, 0.0)[2] is not None

@@ -10,10 +10,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from mapfusion.config import FusionConfig
 from mapfusion.counters import Counters
 from mapfusion.engine import MapFusion
 from mapfusion.roadmap import RoadMap
-from mapfusion.track import JumpGuard, spread_back
+from mapfusion.track import JumpGuard, along_heading, spread_back
 from tests.helpers import straight_road, synthetic_truth, write_osm
 
 
@@ -222,3 +223,55 @@ def test_the_compass_rule_turns_each_pose_by_its_share_of_the_heading_correction
     for i, p in enumerate(out, start=1):
         assert abs(math.remainder(p.rotation().yaw() - 0.3 - dyaw * i / n, 2.0 * math.pi)) < 1e-9
         assert abs(p.x() - (10.0 * i + dx * i / n)) < 1e-9 and p.z() == 1.0
+
+
+# ---------------------------------------------------------------- odometry_nonholonomic (issue 17, session 40)
+@given(x=st.floats(-30.0, 30.0), y=st.floats(-30.0, 30.0), z=st.floats(-2.0, 2.0), yaw=st.floats(-1.5, 1.5))
+def test_a_step_along_its_heading_keeps_its_length_height_and_rotation(x, y, z, yaw):
+    step = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x, y, z))
+    out = along_heading(step)
+    d = math.hypot(x, y)
+    assert math.hypot(out.x(), out.y()) == pytest.approx(d, abs=1e-9)
+    assert out.z() == z and out.rotation().equals(step.rotation(), 1e-12)
+    if d > 1e-6:  # along the mean of the start heading (0) and the end heading (yaw), as the step went
+        direction = math.atan2(out.y(), out.x())
+        expected = 0.5 * yaw if x >= 0.0 else 0.5 * yaw + math.pi
+        assert abs(math.remainder(direction - expected, 2.0 * math.pi)) < 1e-9
+
+
+@given(d=st.floats(0.0, 30.0), yaw=st.floats(-1.5, 1.5), backwards=st.booleans())
+def test_a_step_already_along_its_mean_heading_is_unchanged(d, yaw, backwards):
+    s = -d if backwards else d
+    step = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(s * math.cos(0.5 * yaw), s * math.sin(0.5 * yaw), 0.0))
+    assert along_heading(step).equals(step, 1e-9)
+
+
+def _sliding_drive(tmp_path, nonholonomic: bool) -> tuple[float, float]:
+    """A straight drive east at 10 m/s: GPS for 60 s, then none; from 80 s to 100 s the odometry slides 0.1 m
+    to the left per metre driven (a rain episode's drift), heading true. Returns the estimate's final (x, y)
+    error (m). No map priors: the odometry's step alone decides."""
+    road = RoadMap.from_osm(write_osm(tmp_path, [(straight_road(3000.0, 0.0, (-1500.0, 0.0)),
+                                                  {"highway": "primary"})]), cache=False)
+    eng = MapFusion(road, FusionConfig(use_map=False, odometry_nonholonomic=nonholonomic), gps_rate_hz=1.0,
+                    odometry_rate_hz=10.0)
+    for k in range(1500):
+        t = 0.1 * k
+        if k % 10 == 0 and t <= 60.0:
+            lat, lon = road.projection.to_geo(-1400.0 + 10.0 * t, 0.0)
+            eng.add_gps(t, float(lat), float(lon), None, 1.0)
+        rel = np.eye(4)
+        rel[0, 3] = 0.0 if k == 0 else 1.0
+        rel[1, 3] = 0.1 if 80.0 < t <= 100.0 else 0.0
+        eng.add_odometry(t, rel)
+    eng.finish()
+    p = eng.estimate()
+    return p.x() - (-1400.0 + 149.9 * 10.0), p.y()
+
+
+@pytest.mark.parametrize("nonholonomic", [False, True])
+def test_a_sideways_slide_of_the_odometry_is_not_taken_for_motion(tmp_path, nonholonomic):
+    ex, ey = _sliding_drive(tmp_path, nonholonomic)
+    if nonholonomic:
+        assert abs(ey) < 1.0 and abs(ex) < 2.0, (ex, ey)
+    else:  # as measured: 200 m of sliding, 20 m to the left
+        assert ey > 15.0, (ex, ey)
