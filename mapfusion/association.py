@@ -274,14 +274,16 @@ class MapAssociation:
         self._since_prior_m = 0.0
         return m, factors.pose_prior(k, r_pose, noise)
 
-    def heading_prior(self, k: int, pred: gtsam.Pose3, m: Match | None,
-                      moved_m: float) -> gtsam.PriorFactorPose3 | None:
+    def heading_prior(self, k: int, pred: gtsam.Pose3, m: Match | None, moved_m: float,
+                      yaw_sigma_rad: float = math.inf) -> gtsam.PriorFactorPose3 | None:
         """A prior on frame k's yaw alone (``heading_prior_sigma_deg``): the road's heading, when the estimate lies on a
-        straight stretch of its road heading along it (see the field's documentation)."""
+        straight stretch of its road heading along it and knows its own heading less well than the road does
+        (``yaw_sigma_rad``: its marginal σ; see the field's documentation)."""
         cfg = self.cfg
         self._since_heading_m += moved_m
-        if cfg.heading_prior_sigma_deg <= 0 or m is None or m.is_join or \
-                self._since_heading_m < cfg.heading_prior_spacing_m or m.angle_deg > cfg.heading_prior_max_deg:
+        sigma = math.radians(cfg.heading_prior_sigma_deg)
+        if sigma <= 0 or m is None or m.is_join or self._since_heading_m < cfg.heading_prior_spacing_m or \
+                m.angle_deg > cfg.heading_prior_max_deg or yaw_sigma_rad < cfg.heading_prior_gate * sigma:
             return None
         if m.lateral_m > m.lanes * cfg.lane_width_m or not self._straight(m):
             return None
@@ -290,7 +292,7 @@ class MapAssociation:
         turn = math.remainder(m.yaw_rad - pred.rotation().yaw(), 2.0 * math.pi)
         target = pred.compose(gtsam.Pose3(gtsam.Rot3.Yaw(turn), gtsam.Point3(0.0, 0.0, 0.0)))
         r = np.zeros((6, 6))
-        r[2, 2] = 1.0 / math.radians(cfg.heading_prior_sigma_deg)
+        r[2, 2] = 1.0 / sigma
         return factors.pose_prior(k, target, factors.sqrt_information_noise(r, self._robust))
 
     def _straight(self, m: Match) -> bool:

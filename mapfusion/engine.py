@@ -131,6 +131,7 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
         self._since_update = 0
         self._last_cov_check_t = -math.inf
         self._pos_sigma = self._lat_sigma = 0.0  # the estimate's positional σ: largest, across the vehicle
+        self._yaw_sigma = math.inf  # and its yaw σ (rad; unknown until the first check)
         self._init_reanchoring()
         self._road_fixes = RoadFixes(road, self.cfg, self.counters)  # (inert unless road_fixes and use_map)
 
@@ -344,7 +345,7 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
             self.lost_s += dt
         self.matched_way[k] = m.way_id if m is not None else -1
         if prior is None:  # (on its road: perhaps a prior on the heading alone)
-            prior = self._association.heading_prior(k, pred, m, math.hypot(step.x(), step.y()))
+            prior = self._association.heading_prior(k, pred, m, math.hypot(step.x(), step.y()), self._yaw_sigma)
             if prior is None:
                 return False
         else:
@@ -364,7 +365,7 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
         sigmas = sm.position_sigmas()
         if sigmas is None:
             return
-        self._pos_sigma, self._lat_sigma = sigmas
+        self._pos_sigma, self._lat_sigma, self._yaw_sigma = sigmas
         prior = self._association.odometry_prior(k, pred, self._pos_sigma)
         if prior is not None:
             sm.add(prior)

@@ -143,16 +143,17 @@ class Smoother:
     def covariance(self, k: int) -> np.ndarray:
         return self.backend.covariance(X(k))
 
-    def position_sigmas(self) -> tuple[float, float] | None:
-        """The latest updated frame's largest positional σ and its σ across the vehicle (m); None when
-        GTSAM has no marginal for it (e.g. ISAM2 re-anchored after a failed Cholesky update and the key
+    def position_sigmas(self) -> tuple[float, float, float] | None:
+        """The latest updated frame's largest positional σ and its σ across the vehicle (m), and its yaw σ (rad);
+        None when GTSAM has no marginal for it (e.g. ISAM2 re-anchored after a failed Cholesky update and the key
         is not in the new Bayes tree: the next check will have one)."""
         try:
             cov = self.covariance(self.last_updated_key)
         except (RuntimeError, IndexError):
             return None
         xy = cov[3:5, 3:5]
-        return math.sqrt(max(float(np.linalg.eigvalsh(xy).max()), 0.0)), math.sqrt(max(float(xy[1, 1]), 0.0))
+        return (math.sqrt(max(float(np.linalg.eigvalsh(xy).max()), 0.0)), math.sqrt(max(float(xy[1, 1]), 0.0)),
+                math.sqrt(max(float(cov[2, 2]), 0.0)))
 
     def poses(self) -> dict[int, gtsam.Pose3 | None]:
         """Final estimates of the frames let go, then the backend's current ones."""

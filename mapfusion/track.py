@@ -202,9 +202,11 @@ class Track:
     """Odometry frames in time order, and their causal estimates (None before initialisation)."""
 
     def __init__(self, state: StateModel, nominal_period_s: float, flat: bool = False,
-                 level: LocalLevel | None = None, nonholonomic: bool = False) -> None:
+                 level: LocalLevel | None = None, nonholonomic: bool = False, slip_rad: float = 0.0) -> None:
         self.state = state
         self.nonholonomic = nonholonomic
+        self.slip_rad = slip_rad
+        self.lever_arm = LeverArm()
         # planar state, steps taken in the body frame (flat) or on the local horizontal (level): the raw chain
         # is composed of each step's x, y and yaw
         self.level = level if state is StateModel.planar else None
@@ -229,6 +231,8 @@ class Track:
         elif self.flat:
             rel = flatten(rel)
         self._odo_abs = self._odo_abs if first else self._odo_abs.compose(rel)
+        if self.nonholonomic and not first and t - self.t[-1] <= NONHOLONOMIC_MAX_S:
+            self.lever_arm.add(rel)
         self.t.append(t)
         self.raw.append(self.level_rot.compose(self._odo_abs) if self.level_rot is not None else self._odo_abs)
         self.rel.append(gtsam.Pose3() if first else rel)
@@ -324,20 +328,98 @@ class Track:
         else:
             rel = self.rel[k]
             step = gtsam.Pose3(rel.rotation(), gtsam.Point3(*(rel.translation() * scale)))
-        return along_heading(step) if self.nonholonomic else step
+        if self.nonholonomic and self.t[k] - self.t[k - 1] <= NONHOLONOMIC_MAX_S and self._sliding(k, scale):
+            return along_heading(step, self.lever_arm.lever(scale))
+        return step
+
+    def _sliding(self, k: int, scale: float) -> bool:
+        """The odometry's frames up to k slid sideways, over the last SLIDE_FRAMES (at least SLIDE_MIN_M of driving
+        at the odometry's ``scale``), by more than ``slip_rad`` (always, with ``slip_rad`` 0)."""
+        if self.slip_rad <= 0.0:
+            return True
+        lever = self.lever_arm.lever(1.0)
+        across = along = turn = 0.0
+        for j in range(max(self.first + 1, k - SLIDE_FRAMES + 1), k + 1):
+            if self.t[j] - self.t[j - 1] <= NONHOLONOMIC_MAX_S:
+                rel = self.rel[j]
+                a, b = slide_of(rel, lever)
+                across, along, turn = across + a, along + b, turn + abs(rel.rotation().yaw())
+        return along * scale >= SLIDE_MIN_M and turn <= SLIDE_MAX_TURN_RAD and \
+            abs(across) > math.tan(self.slip_rad) * along
 
 
-def along_heading(step: gtsam.Pose3) -> gtsam.Pose3:
+#: odometry_nonholonomic turns steps over at most this long: a second of driving is near enough an arc, whose chord
+#: points along the mean of its end headings; a step across a longer gap is a re-initialised odometry's guess.
+NONHOLONOMIC_MAX_S = 1.0
+
+
+def along_heading(step: gtsam.Pose3, lever_m: float = 0.0) -> gtsam.Pose3:
     """The step with its horizontal displacement turned onto the direction a wheeled vehicle moves in
-    (``odometry_nonholonomic``): along the mean of its start and end headings, forwards or backwards as
-    the step went; its length, its z and its rotation kept."""
+    (``odometry_nonholonomic``). The point of the vehicle that does not slide (the rear axle's middle) lies
+    ``lever_m`` behind the odometry's frame: its step, the measured one less the lever's swing, is turned
+    along the mean of the step's start and end headings (the chord of an arc), forwards or backwards as it
+    went, its length kept; the lever's swing is added back. z and the rotation are kept."""
     x, y, z = step.translation()
-    d = math.hypot(x, y)
+    yaw = step.rotation().yaw()
+    sx, sy = lever_m * (math.cos(yaw) - 1.0), lever_m * math.sin(yaw)  # the frame's swing about the axle
+    ax, ay = x - sx, y - sy
+    d = math.hypot(ax, ay)
     if d == 0.0:
         return step
-    half = 0.5 * step.rotation().yaw()
-    d = d if x >= 0.0 else -d
-    return gtsam.Pose3(step.rotation(), gtsam.Point3(d * math.cos(half), d * math.sin(half), z))
+    half = 0.5 * yaw
+    d = d if ax >= 0.0 else -d
+    return gtsam.Pose3(step.rotation(), gtsam.Point3(d * math.cos(half) + sx, d * math.sin(half) + sy, z))
+
+
+def slide_of(step: gtsam.Pose3, lever_m: float = 0.0) -> tuple[float, float]:
+    """The step's motion beyond the lever's swing, across and along its mean heading: (sideways, along) (its own
+    units; along is ≥ 0, a backward step's taken the other way round)."""
+    x, y, _ = step.translation()
+    yaw = step.rotation().yaw()
+    ax, ay = x - lever_m * (math.cos(yaw) - 1.0), y - lever_m * math.sin(yaw)
+    c, s = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
+    along, across = c * ax + s * ay, -s * ax + c * ay
+    return (across, along) if along >= 0.0 else (-across, -along)
+
+
+#: A slide is told over this many frames (a second at 10 Hz): a good odometry's steps scatter about their heading by a
+#: degree or so, a VO's slide in rain holds its direction for seconds.
+SLIDE_FRAMES = 10
+#: ... and over at least this much driving (m): at a crawl a step's direction is its noise.
+SLIDE_MIN_M = 2.0
+#: ... turning at most this much (rad): in a sharp turn the frame's swing (a lever arm a few decimetres off) and the
+#: tyres' own slip are degrees.
+SLIDE_MAX_TURN_RAD = 0.1
+
+#: The lever arm is estimated once the steps' turns add up to this (Σ sin² of each step's turn, rad²: a 90°
+#: turn at 10 Hz and 10 m/s gives ~0.1), and it is held within LEVER_MAX_M of the frame.
+LEVER_MIN_TURN = 0.05
+LEVER_MAX_M = 5.0
+
+
+class LeverArm:
+    """How far ahead of the rear axle the odometry's frame lies, from its own steps: in a turn that frame
+    swings sideways by lever × sin(turn) beyond the axle's arc (a camera 1.5 m ahead of it, 2.4 m across a
+    right-angle turn), which :func:`along_heading` must keep. A least-squares fit over the run of each step's
+    sideways motion beyond the arc's on sin(turn); a VO's slides (rain) do not follow the turns, and only
+    widen the fit. In the odometry's own units."""
+
+    def __init__(self) -> None:
+        self._sxy = self._sxx = 0.0
+
+    def add(self, step: gtsam.Pose3) -> None:
+        x, y, _ = step.translation()
+        yaw = step.rotation().yaw()
+        d = math.hypot(x, y)
+        s = math.sin(yaw)
+        self._sxy += (y - math.copysign(d, x) * math.sin(0.5 * yaw)) * s
+        self._sxx += s * s
+
+    def lever(self, scale: float) -> float:
+        """The lever arm in metres at the odometry's ``scale`` (0 until the turns suffice)."""
+        if self._sxx < LEVER_MIN_TURN:
+            return 0.0
+        return min(max(self._sxy / self._sxx * scale, -LEVER_MAX_M), LEVER_MAX_M)
 
 
 def track_for(cfg: FusionConfig, odometry_rate_hz: float) -> Track:
@@ -345,7 +427,7 @@ def track_for(cfg: FusionConfig, odometry_rate_hz: float) -> Track:
     level = LocalLevel(round(cfg.level_window_s * odometry_rate_hz), cfg.outage_s) \
         if cfg.planar_steps is PlanarSteps.level else None
     return Track(cfg.state, 1.0 / odometry_rate_hz, flat=cfg.planar_steps is PlanarSteps.body, level=level,
-                 nonholonomic=cfg.odometry_nonholonomic)
+                 nonholonomic=cfg.odometry_nonholonomic, slip_rad=math.radians(cfg.odometry_slip_deg))
 
 
 class JumpGuard:

@@ -105,10 +105,11 @@ def ring_road(tmp_path_factory) -> RoadMap:
     return RoadMap.from_osm(write_osm(d, [(circle_road(40.0), {"highway": "primary", "lanes": "1"})]), cache=False)
 
 
-def _heading_prior(road: RoadMap, x_m: float, y_m: float, yaw_rad: float, moved_m: float = 100.0, **cfg):
+def _heading_prior(road: RoadMap, x_m: float, y_m: float, yaw_rad: float, moved_m: float = 100.0,
+                   yaw_sigma_deg: float = math.inf, **cfg):
     assoc = MapAssociation(road, FusionConfig(**({"heading_prior_sigma_deg": 3.0} | cfg)), Counters())
     pred = gtsam.Pose3(gtsam.Rot3.Yaw(yaw_rad), gtsam.Point3(x_m, y_m, 0.0))
-    return assoc, pred, assoc.heading_prior(7, pred, assoc.match(pred), moved_m)
+    return assoc, pred, assoc.heading_prior(7, pred, assoc.match(pred), moved_m, math.radians(yaw_sigma_deg))
 
 
 @given(x=st.floats(-150.0, 150.0), y=st.floats(-2.9, 2.9), off_deg=st.floats(-9.9, 9.9), backwards=st.booleans())
@@ -129,7 +130,7 @@ def test_a_heading_prior_turns_the_yaw_alone_onto_a_straight_road(east_road, x, 
 
 
 @pytest.mark.parametrize("case", ["off", "too far off the road's heading", "off the road", "on a curve",
-                                  "too soon after the last"])
+                                  "too soon after the last", "its own heading known better"])
 def test_no_heading_prior_where_the_road_says_nothing_sure_of_the_heading(east_road, ring_road, case):
     if case == "off":
         assoc, _, factor = _heading_prior(east_road, 0.0, 0.0, 0.05, heading_prior_sigma_deg=0.0)
@@ -139,6 +140,9 @@ def test_no_heading_prior_where_the_road_says_nothing_sure_of_the_heading(east_r
         assoc, _, factor = _heading_prior(east_road, 0.0, 3.5, 0.0)
     elif case == "on a curve":
         assoc, _, factor = _heading_prior(ring_road, 40.0, 0.0, math.pi / 2)
+    elif case == "its own heading known better":  # its yaw σ 2.9 degrees, under the gate's 1 × 3
+        assoc, _, factor = _heading_prior(east_road, 0.0, 0.0, 0.05, yaw_sigma_deg=2.9, heading_prior_gate=1.0)
+        assert _heading_prior(east_road, 0.0, 0.0, 0.05, yaw_sigma_deg=3.1, heading_prior_gate=1.0)[2] is not None
     else:  # one 10 m (heading_prior_spacing_m) after another, then 9 m on
         assoc, pred, first = _heading_prior(east_road, 0.0, 0.0, 0.0)
         assert first is not None

@@ -10,11 +10,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from mapfusion.config import FusionConfig
+from mapfusion.config import FusionConfig, StateModel
 from mapfusion.counters import Counters
 from mapfusion.engine import MapFusion
 from mapfusion.roadmap import RoadMap
-from mapfusion.track import JumpGuard, along_heading, spread_back
+from mapfusion.track import SLIDE_FRAMES, JumpGuard, LeverArm, Track, along_heading, slide_of, spread_back
 from tests.helpers import straight_road, synthetic_truth, write_osm
 
 
@@ -275,3 +275,75 @@ def test_a_sideways_slide_of_the_odometry_is_not_taken_for_motion(tmp_path, nonh
         assert abs(ey) < 1.0 and abs(ex) < 2.0, (ex, ey)
     else:  # as measured: 200 m of sliding, 20 m to the left
         assert ey > 15.0, (ex, ey)
+
+
+def _kinematic_step(d_m: float, yaw_rad: float, lever_m: float, slide_m: float = 0.0) -> gtsam.Pose3:
+    """The step of a frame ``lever_m`` ahead of the rear axle when the axle drives an arc's chord of ``d_m``
+    turning ``yaw_rad``, plus a sideways slide of ``slide_m`` (to the left)."""
+    half = 0.5 * yaw_rad
+    x = d_m * math.cos(half) + lever_m * (math.cos(yaw_rad) - 1.0)
+    y = d_m * math.sin(half) + lever_m * math.sin(yaw_rad) + slide_m
+    return gtsam.Pose3(gtsam.Rot3.Yaw(yaw_rad), gtsam.Point3(x, y, 0.0))
+
+
+@given(d=st.floats(-20.0, 20.0), yaw=st.floats(-1.0, 1.0), lever=st.floats(-3.0, 3.0))
+def test_a_frame_ahead_of_the_axle_keeps_its_swing_in_a_turn(d, yaw, lever):
+    step = _kinematic_step(d, yaw, lever)
+    assert along_heading(step, lever).equals(step, 1e-9)
+
+
+@given(d=st.floats(0.1, 20.0), yaw=st.floats(-1.0, 1.0), lever=st.floats(-3.0, 3.0), slide=st.floats(-0.5, 0.5),
+       backwards=st.booleans())
+def test_a_steps_slide_is_its_motion_across_its_heading_beyond_the_levers_swing(d, yaw, lever, slide, backwards):
+    s = -1.0 if backwards else 1.0
+    across, along = slide_of(_kinematic_step(s * d, yaw, lever, s * slide), lever)
+    assert across == pytest.approx(slide * math.cos(0.5 * yaw), abs=1e-9)
+    assert along == pytest.approx(d + slide * math.sin(0.5 * yaw), abs=1e-9)
+
+
+def _track_steps(slide_m_per_m: float, seed: int, n: int = 40) -> tuple[Track, list[gtsam.Pose3]]:
+    """A planar track of 1 m steps straight on, each step's direction scattered by 1 degree, sliding
+    ``slide_m_per_m`` to the left; with a 2 degree slip (odometry_slip_deg)."""
+    rng = np.random.default_rng(seed)
+    track = Track(StateModel.planar, 0.1, nonholonomic=True, slip_rad=math.radians(2.0))
+    steps = []
+    for k in range(n):
+        a = rng.normal(0.0, math.radians(1.0))
+        rel = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(math.cos(a), math.sin(a) + slide_m_per_m, 0.0))
+        track.append(0.1 * k, rel)
+        steps.append(rel)
+    return track, steps
+
+
+@given(seed=st.integers(0, 10_000))
+def test_a_good_odometrys_scattered_steps_are_kept_as_measured(seed):
+    track, steps = _track_steps(0.0, seed)
+    for k in range(SLIDE_FRAMES, len(track)):
+        assert track.step(k, 1.0).equals(steps[k], 1e-9)
+
+
+@given(seed=st.integers(0, 10_000), slide=st.sampled_from([-0.1, 0.1]))
+def test_a_sustained_slide_is_not_taken_for_motion(seed, slide):
+    """A VO sliding 0.1 m per metre (5.7 degrees, a rain episode's) goes straight on, its length kept."""
+    track, steps = _track_steps(slide, seed)
+    for k in range(SLIDE_FRAMES, len(track)):
+        out = track.step(k, 1.0)
+        assert abs(out.y()) < 1e-9 and out.x() == pytest.approx(float(np.hypot(*steps[k].translation()[:2])))
+
+
+@given(lever=st.floats(-3.0, 3.0), seed=st.integers(0, 1000))
+def test_the_lever_arm_is_found_from_the_turns(lever, seed):
+    rng = np.random.default_rng(seed)
+    arm = LeverArm()
+    assert arm.lever(1.0) == 0.0
+    for _ in range(400):  # 1 m steps turning up to 6 degrees, with slides that do not follow the turns
+        arm.add(_kinematic_step(1.0, rng.uniform(-0.1, 0.1), lever, rng.normal(0.0, 0.01)))
+    assert arm.lever(1.0) == pytest.approx(lever, abs=0.1)
+    assert arm.lever(2.0) == pytest.approx(min(2.0 * lever, 5.0) if lever > 0 else max(2.0 * lever, -5.0), abs=0.2)
+
+
+def test_no_lever_arm_before_the_turns_add_up():
+    arm = LeverArm()
+    for _ in range(1000):  # straight on: nothing tells the lever
+        arm.add(_kinematic_step(1.0, 0.0, 2.0, 0.05))
+    assert arm.lever(1.0) == 0.0
