@@ -275,15 +275,17 @@ class MapAssociation:
         return m, factors.pose_prior(k, r_pose, noise)
 
     def heading_prior(self, k: int, pred: gtsam.Pose3, m: Match | None, moved_m: float,
-                      yaw_sigma_rad: float = math.inf) -> gtsam.PriorFactorPose3 | None:
+                      yaw_sigma_rad: float = math.inf, sigma_factor: float = 1.0) -> gtsam.PriorFactorPose3 | None:
         """A prior on frame k's yaw alone (``heading_prior_sigma_deg``): the road's heading, when the estimate lies on a
         straight stretch of its road heading along it and knows its own heading less well than the road does
-        (``yaw_sigma_rad``: its marginal σ; see the field's documentation)."""
+        (``yaw_sigma_rad``: its marginal σ, unless the learned odometry σ factor ``sigma_factor`` exceeds
+        ``heading_prior_open_factor``; see the fields' documentation)."""
         cfg = self.cfg
         self._since_heading_m += moved_m
         sigma = math.radians(cfg.heading_prior_sigma_deg)
+        shut = yaw_sigma_rad < cfg.heading_prior_gate * sigma and not 0 < cfg.heading_prior_open_factor < sigma_factor
         if sigma <= 0 or m is None or m.is_join or self._since_heading_m < cfg.heading_prior_spacing_m or \
-                m.angle_deg > cfg.heading_prior_max_deg or yaw_sigma_rad < cfg.heading_prior_gate * sigma:
+                m.angle_deg > cfg.heading_prior_max_deg or shut:
             return None
         if m.lateral_m > m.lanes * cfg.lane_width_m or not self._straight(m):
             return None

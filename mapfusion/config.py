@@ -609,6 +609,15 @@ class FusionConfig:
         source="issue 17, session 40: 1 keeps KITTI's good VIO as it was but lost Helsinki heavy rain s5 (online "
         "RMSE 5.7 -> 155 m: the marginal σ of a VO in heavy rain is optimistic); 0.3 not yet measured widely",
     )
+    heading_prior_open_factor: float = param(
+        0.0,
+        "heading_prior_gate stays open while the learned odometry σ factor (odometry_sigma_learned) exceeds this: "
+        "the GPS window found the odometry worse than configured, so its own marginal yaw σ is optimistic "
+        "(0: the gate alone decides).",
+        unit="1", min=0.0, max=100.0,
+        source="issue 17, session 40: the learned factor reads 1.00 on KITTI's clear VIO and 3.00 on Helsinki "
+        "heavy rain s5, whose heading priors the gate at 1 shut out (docs/method.md)",
+    )
     heading_prior_max_deg: float = param(
         10.0,
         "No heading prior from a match whose angle A exceeds this: an estimate turning, changing lanes or "

@@ -345,7 +345,8 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
             self.lost_s += dt
         self.matched_way[k] = m.way_id if m is not None else -1
         if prior is None:  # (on its road: perhaps a prior on the heading alone)
-            prior = self._association.heading_prior(k, pred, m, math.hypot(step.x(), step.y()), self._yaw_sigma)
+            prior = self._association.heading_prior(k, pred, m, math.hypot(step.x(), step.y()), self._yaw_sigma,
+                                                    self._motion.sigma_factor)
             if prior is None:
                 return False
         else:

@@ -106,10 +106,11 @@ def ring_road(tmp_path_factory) -> RoadMap:
 
 
 def _heading_prior(road: RoadMap, x_m: float, y_m: float, yaw_rad: float, moved_m: float = 100.0,
-                   yaw_sigma_deg: float = math.inf, **cfg):
+                   yaw_sigma_deg: float = math.inf, sigma_factor: float = 1.0, **cfg):
     assoc = MapAssociation(road, FusionConfig(**({"heading_prior_sigma_deg": 3.0} | cfg)), Counters())
     pred = gtsam.Pose3(gtsam.Rot3.Yaw(yaw_rad), gtsam.Point3(x_m, y_m, 0.0))
-    return assoc, pred, assoc.heading_prior(7, pred, assoc.match(pred), moved_m, math.radians(yaw_sigma_deg))
+    return assoc, pred, assoc.heading_prior(7, pred, assoc.match(pred), moved_m, math.radians(yaw_sigma_deg),
+                                            sigma_factor)
 
 
 @given(x=st.floats(-150.0, 150.0), y=st.floats(-2.9, 2.9), off_deg=st.floats(-9.9, 9.9), backwards=st.booleans())
@@ -126,7 +127,11 @@ def test_a_heading_prior_turns_the_yaw_alone_onto_a_straight_road(east_road, x, 
     assert factor.error(values) < 1e-12
     turned = gtsam.Values()
     turned.insert(gtsam.symbol_shorthand.X(7), pred)
-    assert (factor.error(turned) > 1e-6) == (abs(off_deg) > 0.01)
+    # the yaw's own cost: 0.5 (δ/σ)² (within the robust kernel's quadratic part), 5.6e-6 at δ = 0.01°, σ = 3°
+    if abs(off_deg) >= 0.01:
+        assert factor.error(turned) > 5e-6
+    elif abs(off_deg) < 0.001:
+        assert factor.error(turned) < 1e-7
 
 
 @pytest.mark.parametrize("case", ["off", "too far off the road's heading", "off the road", "on a curve",
@@ -153,3 +158,12 @@ def test_no_heading_prior_where_the_road_says_nothing_sure_of_the_heading(east_r
     assert factor is None and assoc.counters.heading_priors == 0
     if case == "on a curve":  # the same estimate on a straight road gets one
         assert _heading_prior(east_road, 0.0, 0.0, 0.0)[2] is not None
+
+
+@pytest.mark.parametrize("factor, expected", [(1.0, False), (1.5, False), (3.0, True)])
+def test_a_learned_odometry_sigma_over_the_open_factor_opens_the_gate(east_road, factor, expected):
+    """The estimate's marginal yaw σ (1 degree) is under the gate (1 × 3 degrees); the GPS window's verdict on the
+    odometry (its σ × factor) opens it when over heading_prior_open_factor (1.5)."""
+    _, _, factor_ = _heading_prior(east_road, 0.0, 0.0, 0.05, yaw_sigma_deg=1.0, sigma_factor=factor,
+                                   heading_prior_gate=1.0, heading_prior_open_factor=1.5)
+    assert (factor_ is not None) == expected
