@@ -361,7 +361,7 @@ def along_heading(step: gtsam.Pose3, lever_m: float = 0.0) -> gtsam.Pose3:
     went, its length kept; the lever's swing is added back. z and the rotation are kept."""
     x, y, z = step.translation()
     yaw = step.rotation().yaw()
-    sx, sy = lever_m * (math.cos(yaw) - 1.0), lever_m * math.sin(yaw)  # the frame's swing about the axle
+    sx, sy = _swing(yaw, lever_m)
     ax, ay = x - sx, y - sy
     d = math.hypot(ax, ay)
     if d == 0.0:
@@ -371,12 +371,19 @@ def along_heading(step: gtsam.Pose3, lever_m: float = 0.0) -> gtsam.Pose3:
     return gtsam.Pose3(step.rotation(), gtsam.Point3(d * math.cos(half) + sx, d * math.sin(half) + sy, z))
 
 
+def _swing(yaw_rad: float, lever_m: float) -> tuple[float, float]:
+    """How far a frame ``lever_m`` ahead of the rear axle moves beyond the axle's own motion in a turn of
+    ``yaw_rad``, in the step's start frame (x, y)."""
+    return lever_m * (math.cos(yaw_rad) - 1.0), lever_m * math.sin(yaw_rad)
+
+
 def slide_of(step: gtsam.Pose3, lever_m: float = 0.0) -> tuple[float, float]:
     """The step's motion beyond the lever's swing, across and along its mean heading: (sideways, along) (its own
     units; along is ≥ 0, a backward step's taken the other way round)."""
     x, y, _ = step.translation()
     yaw = step.rotation().yaw()
-    ax, ay = x - lever_m * (math.cos(yaw) - 1.0), y - lever_m * math.sin(yaw)
+    sx, sy = _swing(yaw, lever_m)
+    ax, ay = x - sx, y - sy
     c, s = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
     along, across = c * ax + s * ay, -s * ax + c * ay
     return (across, along) if along >= 0.0 else (-across, -along)
