@@ -1199,6 +1199,47 @@ class FusionConfig:
                                        "estimate moved than this × the combined σ (the answer's spread, the drift) "
                                        "is not a fix (0: no gate).", min=0.0, max=1000.0,
                                        source="issue 16: never make a drive worse")
+    curve_fixes: bool = param(False, "While GPS is silent, where the estimate's last curve_fix_path_m turned by "
+                              "curve_fix_turn_deg, that stretch is registered on the roads and the shift that puts it "
+                              "there enters the graph as a fix: a bend places the vehicle along its road, which the "
+                              "map priors (across it) never do.", source="issue 17, session 42")
+    curve_fix_path_m: float = param(100.0, "Length of the recent path registered.", unit="m", min=1.0, max=10000.0,
+                                    source="issue 17; by measurement")
+    curve_fix_every_m: float = param(10.0, "Driving between two registrations.", unit="m", min=0.1, max=10000.0,
+                                     source="issue 17; by measurement")
+    curve_fix_turn_deg: float = param(45.0, "Least heading range over the path for a registration: a straight path "
+                                      "fits every shift along its road.", unit="deg", min=0.0, max=3600.0,
+                                      source="issue 17; by measurement")
+    curve_fix_radius_m: float = param(20.0, "Largest shift searched.", unit="m", min=0.5, max=1000.0,
+                                      source="issue 17: the tracked estimate's along-road error, 5-10 m")
+    curve_fix_max_shift_m: float = param(12.0, "Longest shift that is a fix: a best shift near the edge of the "
+                                         "searched disc may have its true minimum beyond it (an estimate tens of "
+                                         "metres off is the road fixes' and the search's to find).", unit="m",
+                                         min=0.0, max=1000.0, source="issue 17, session 42: a never-kidnapped "
+                                         "Helsinki drive 37 m off, moved to a local fit at the disc's edge")
+    curve_fix_cell_m: float = param(1.0, "Grid of the shifts and of the roads' distance field.", unit="m", min=0.1,
+                                    max=100.0, source="issue 17; by measurement")
+    curve_fix_cap_m: float = param(6.0, "A path point's distance to the roads counts at most this much (a point "
+                                   "off every road, where the map has no road, costs the same for every shift).",
+                                   unit="m", min=0.1, max=1000.0, source="issue 17; by measurement")
+    curve_fix_separation_m: float = param(6.0, "The runner-up is the best shift at least this far from the best.",
+                                          unit="m", min=0.0, max=1000.0, source="issue 17; by measurement")
+    curve_fix_ratio: float = param(1.5, "The runner-up's RMS must be at least this times the best's (and than "
+                                   "1 m) for a fix.", min=1.0, max=100.0, source="issue 17; by measurement")
+    curve_fix_max_rms_m: float = param(3.0, "Largest RMS distance to the roads of the shifted path for a fix.",
+                                       unit="m", min=0.0, max=1000.0, source="issue 17; by measurement")
+    curve_fix_min_shift_m: float = param(2.0, "Shortest shift that is a fix (nearer: the driving side's lane and "
+                                         "the map's own error).", unit="m", min=0.0, max=1000.0,
+                                         source="issue 17; SUMO drives 1.6 m right of OSM's centre line")
+    curve_fix_min_drift_ratio: float = param(1.5, "No curve fix for an odometry whose GPS window showed it drifting "
+                                             "less than this times what the configured σ allow (the upper bound of "
+                                             "odometry_sigma_learned's drift over its model): a good odometry knows "
+                                             "its place along the road better than a map's bends are drawn. Without "
+                                             "a window (a cold start) the fixes are on.", min=0.0, max=1000.0,
+                                             source="issue 17, session 42: KITTI's ground truth on OSM, 0.3-1.0; "
+                                             "the simulated VO 1.1-9.1, real stereo VO 2.4-6")
+    curve_fix_sigma_m: float = param(1.0, "σ of a curve fix (per axis).", unit="m", min=0.01, max=1000.0,
+                                     source="issue 17; by measurement")
     relinearize_threshold: float = param(
         0.01,
         "ISAM2's relinearisation threshold (tangent-space step).",

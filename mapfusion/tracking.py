@@ -38,6 +38,7 @@ from . import factors
 from .association import MapAssociation
 from .config import FusionConfig
 from .counters import Counters
+from .curvefix import CurveFixes
 from .relocalise import Located, Region, RoadParticles, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
@@ -248,6 +249,7 @@ class RoadFixing:
     counters: Counters
     alignment: Alignment | None
     _road_fixes: RoadFixes
+    _curve_fixes: CurveFixes
     _pos_sigma: float
     _smoother: Smoother | None
     _search: Search
@@ -275,4 +277,19 @@ class RoadFixing:
         if loc is not None and gain > 0:
             scale = math.exp((1.0 - gain) * math.log(self.alignment.scale) + gain * math.log(loc.scale))
             self.alignment = dataclasses.replace(self.alignment, scale=scale)
+        return True
+
+    def _curve_fix(self, k: int, pred: gtsam.Pose3) -> bool:
+        """The curve fix on frame k (``curve_fixes``); True if added. None while a search runs: it questions the
+        very estimate whose path would be registered."""
+        if not self._curve_fixes.enabled:
+            return False
+        if self._search.active is not None:
+            self._curve_fixes.forget()
+            return False
+        fix = self._curve_fixes.step(k, self.track.t[k], pred, self._road_fixes.last_gps_t)
+        if fix is None:
+            return False
+        assert self._smoother is not None
+        self._smoother.add(fix)
         return True

@@ -1,0 +1,92 @@
+"""Curve fixes (``curve_fixes``, issue 17): where the estimate's recent path turned, that stretch registered on
+the roads places the vehicle along its road.
+
+Between turns nothing in the map says where along a road the vehicle is: the map priors and the band hold it
+across the road, and along it the estimate drifts with the odometry's scale (a 1% wander is 10 m a kilometre).
+A bend or a turn is different: the path's shape fits the roads at one place only. Every
+``curve_fix_every_m`` of driving while GPS is silent, when the estimate's last ``curve_fix_path_m`` turned by
+at least ``curve_fix_turn_deg``, that stretch is registered on the road way-points
+(:func:`~mapfusion.register.register_on_roads`, on a ``curve_fix_cell_m`` grid within
+``curve_fix_radius_m``). A shift longer than ``curve_fix_min_shift_m`` and at most ``curve_fix_max_shift_m``
+(short of the disc's edge, where the true minimum may lie beyond it) that fits within
+``curve_fix_max_rms_m`` and beats every shift farther than ``curve_fix_separation_m`` from it by
+``curve_fix_ratio`` enters the graph as a position fix on the current frame (σ ``curve_fix_sigma_m``). The
+path is then forgotten, so no stretch of road is counted twice: fixes sharing one stretch's map error would
+outweigh the odometry (docs/method.md, "Fixes along the road while the estimate agrees"). An odometry whose GPS
+window showed it drifting less than ``curve_fix_min_drift_ratio`` times what its configured σ allows gets none:
+it knows where it is along the road better than a map's bends are drawn (KITTI's own poses on OSM).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+
+import gtsam
+import numpy as np
+
+from . import factors
+from .config import FusionConfig
+from .counters import Counters
+from .register import Registration, register_on_roads
+from .roadmap import RoadMap
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CurveFixes"]
+
+
+class CurveFixes:
+    """The estimate's recent path while GPS is silent, and the fixes its turns give."""
+
+    def __init__(self, road: RoadMap, cfg: FusionConfig, counters: Counters) -> None:
+        self.road, self.cfg, self.counters = road, cfg, counters  # (counts curve_fixes)
+        self.enabled = cfg.curve_fixes and cfg.use_map
+        self.last: Registration | None = None  # the registration behind the last fix
+        self.drift_ratio = math.inf  # the GPS window's odometry drift over the configured σ's (inf: no window)
+        self._path: collections.deque[tuple[float, float, float, float]] = collections.deque()  # (s, x, y, yaw)
+        self._s_m = 0.0  # path length since the path began
+        self._since_m = 0.0  # driving since the last registration
+
+    def forget(self) -> None:
+        """Start the path afresh: after a fix, a re-anchoring or a GPS fix the estimate moved."""
+        self._path.clear()
+        self._s_m = self._since_m = 0.0
+
+    def step(self, k: int, t: float, pred: gtsam.Pose3, last_gps_t: float = -math.inf) -> gtsam.NonlinearFactor | None:
+        """Frame k at time t with its predicted pose (map frame), the last used GPS fix's time: the fix it gets, or
+        None. Within ``road_fix_after_gps_s`` of a GPS fix the path starts afresh (GPS places the estimate)."""
+        cfg = self.cfg
+        if not self.enabled or self.drift_ratio < cfg.curve_fix_min_drift_ratio:
+            return None
+        if t - last_gps_t < cfg.road_fix_after_gps_s:
+            self.forget()
+            return None
+        x, y, yaw = pred.x(), pred.y(), pred.rotation().yaw()
+        if self._path:
+            _, px, py, pyaw = self._path[-1]
+            moved = math.hypot(x - px, y - py)
+            self._s_m += moved
+            self._since_m += moved
+            yaw = pyaw + math.remainder(yaw - pyaw, 2.0 * math.pi)  # unwrapped along the path
+        self._path.append((self._s_m, x, y, yaw))
+        while len(self._path) > 2 and self._s_m - self._path[1][0] >= cfg.curve_fix_path_m:
+            self._path.popleft()
+        if self._since_m < cfg.curve_fix_every_m or self._s_m - self._path[0][0] < cfg.curve_fix_path_m:
+            return None
+        self._since_m = 0.0
+        path = np.asarray(self._path)
+        if math.degrees(path[:, 3].max() - path[:, 3].min()) < cfg.curve_fix_turn_deg:
+            return None
+        reg = register_on_roads(self.road, path[:, 1:3], cfg.curve_fix_radius_m, cell_m=cfg.curve_fix_cell_m,
+                                cap_m=cfg.curve_fix_cap_m, separation_m=cfg.curve_fix_separation_m)
+        if reg is None or reg.shift_m > cfg.curve_fix_max_shift_m or \
+                not reg.decisive(cfg.curve_fix_ratio, cfg.curve_fix_max_rms_m, cfg.curve_fix_min_shift_m):
+            return None
+        self.last = reg
+        self.counters.curve_fixes += 1
+        log.debug("curve fix at frame %d: shift (%.1f, %.1f) m, RMS %.2f m, runner-up %.2f m, unshifted %.2f m", k,
+                  reg.dx_m, reg.dy_m, reg.rms_m, reg.runner_up_rms_m, reg.rms_unshifted_m)
+        self.forget()
+        return factors.gps_factor(cfg.state, k, x + reg.dx_m, y + reg.dy_m, None, cfg.curve_fix_sigma_m)
