@@ -1238,6 +1238,10 @@ class FusionConfig:
                                              "a window (a cold start) the fixes are on.", min=0.0, max=1000.0,
                                              source="issue 17, session 42: KITTI's ground truth on OSM, 0.3-1.0; "
                                              "the simulated VO 1.1-9.1, real stereo VO 2.4-6")
+    curve_fix_headings: bool = param(True, "A registered point counts only the way-points it may drive along in "
+                                     "its heading (register.HEADING_TOLERANCE_DEG): a path is not put on a dual "
+                                     "carriageway's other half, 6-10 m across.", source="issue 17, session 42: the "
+                                     "property test's Helsinki route seed 1, a fix 4 m off")
     curve_fix_sigma_m: float = param(1.0, "σ of a curve fix (per axis).", unit="m", min=0.01, max=1000.0,
                                      source="issue 17; by measurement")
     relinearize_threshold: float = param(

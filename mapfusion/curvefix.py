@@ -80,7 +80,8 @@ class CurveFixes:
         if math.degrees(path[:, 3].max() - path[:, 3].min()) < cfg.curve_fix_turn_deg:
             return None
         reg = register_on_roads(self.road, path[:, 1:3], cfg.curve_fix_radius_m, cell_m=cfg.curve_fix_cell_m,
-                                cap_m=cfg.curve_fix_cap_m, separation_m=cfg.curve_fix_separation_m)
+                                cap_m=cfg.curve_fix_cap_m, separation_m=cfg.curve_fix_separation_m,
+                                headings_rad=path[:, 3] if cfg.curve_fix_headings else None)
         if reg is None or reg.shift_m > cfg.curve_fix_max_shift_m or \
                 not reg.decisive(cfg.curve_fix_ratio, cfg.curve_fix_max_rms_m, cfg.curve_fix_min_shift_m):
             return None
