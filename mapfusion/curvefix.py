@@ -5,7 +5,7 @@ Between turns nothing in the map says where along a road the vehicle is: the map
 across the road, and along it the estimate drifts with the odometry's scale (a 1% wander is 10 m a kilometre).
 A bend or a turn is different: the path's shape fits the roads at one place only. Every
 ``curve_fix_every_m`` of driving while GPS is silent, when the estimate's last ``curve_fix_path_m`` turned by
-at least ``curve_fix_turn_deg``, that stretch is registered on the road way-points
+at least ``curve_fix_turn_deg`` (its axis's turn: a turn back on the spot folds the path onto a line), that stretch is registered on the road way-points
 (:func:`~mapfusion.register.register_on_roads`, on a ``curve_fix_cell_m`` grid within
 ``curve_fix_radius_m``). A shift longer than ``curve_fix_min_shift_m`` and at most ``curve_fix_max_shift_m``
 (short of the disc's edge, where the true minimum may lie beyond it) that fits within
@@ -77,7 +77,10 @@ class CurveFixes:
             return None
         self._since_m = 0.0
         path = np.asarray(self._path)
-        if math.degrees(path[:, 3].max() - path[:, 3].min()) < cfg.curve_fix_turn_deg:
+        # the turn of the path's axis (doubled angles): a turn back on the spot folds the path onto itself, a straight
+        # line whatever its headings' range
+        axis = np.unwrap(2.0 * path[:, 3]) / 2.0
+        if math.degrees(axis.max() - axis.min()) < cfg.curve_fix_turn_deg:
             return None
         reg = register_on_roads(self.road, path[:, 1:3], cfg.curve_fix_radius_m, cell_m=cfg.curve_fix_cell_m,
                                 cap_m=cfg.curve_fix_cap_m, separation_m=cfg.curve_fix_separation_m,
