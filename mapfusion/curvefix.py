@@ -1,20 +1,20 @@
 """Curve fixes (``curve_fixes``, issue 17): where the estimate's recent path turned, that stretch registered on
 the roads places the vehicle along its road.
 
-Between turns nothing in the map says where along a road the vehicle is: the map priors and the band hold it
-across the road, and along it the estimate drifts with the odometry's scale (a 1% wander is 10 m a kilometre).
-A bend or a turn is different: the path's shape fits the roads at one place only. Every
-``curve_fix_every_m`` of driving while GPS is silent, when the estimate's last ``curve_fix_path_m`` turned by
-at least ``curve_fix_turn_deg`` (its axis's turn: a turn back on the spot folds the path onto a line), that stretch is registered on the road way-points
-(:func:`~mapfusion.register.register_on_roads`, on a ``curve_fix_cell_m`` grid within
-``curve_fix_radius_m``). A shift longer than ``curve_fix_min_shift_m`` and at most ``curve_fix_max_shift_m``
-(short of the disc's edge, where the true minimum may lie beyond it) that fits within
-``curve_fix_max_rms_m`` and beats every shift farther than ``curve_fix_separation_m`` from it by
-``curve_fix_ratio`` enters the graph as a position fix on the current frame (σ ``curve_fix_sigma_m``). The
-path is then forgotten, so no stretch of road is counted twice: fixes sharing one stretch's map error would
-outweigh the odometry (docs/method.md, "Fixes along the road while the estimate agrees"). An odometry whose GPS
-window showed it drifting less than ``curve_fix_min_drift_ratio`` times what its configured σ allows gets none:
-it knows where it is along the road better than a map's bends are drawn (KITTI's own poses on OSM).
+Between turns nothing in the map says where along a road the vehicle is: the map priors and the band hold it across
+the road, and along it the estimate drifts with the odometry's scale (a 1% wander is 10 m a kilometre). A bend or a
+turn is different: the path's shape fits the roads at one place only. Every ``curve_fix_every_m`` of driving while
+GPS is silent, when the estimate's last ``curve_fix_path_m`` turned by at least ``curve_fix_turn_deg`` (its axis's
+turn: a turn back on the spot folds the path onto a line), that stretch is registered on the road way-points
+(:func:`~mapfusion.register.register_on_roads`, on a ``curve_fix_cell_m`` grid within ``curve_fix_radius_m``). A
+shift longer than ``curve_fix_min_shift_m`` and at most ``curve_fix_max_shift_m`` (short of the disc's edge, where
+the true minimum may lie beyond it) that fits within ``curve_fix_max_rms_m`` and beats every shift farther than
+``curve_fix_separation_m`` from it by ``curve_fix_ratio`` enters the graph as a position fix on the current frame (σ
+``curve_fix_sigma_m``). The path is then forgotten, so no stretch of road is counted twice: fixes sharing one
+stretch's map error would outweigh the odometry (docs/method.md, "Fixes along the road while the estimate agrees").
+An odometry whose GPS window showed it drifting less than ``curve_fix_min_drift_ratio`` times what its configured σ
+allows gets none: it knows where it is along the road better than a map's bends are drawn (KITTI's own poses on
+OSM).
 """
 
 from __future__ import annotations
