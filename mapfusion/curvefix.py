@@ -29,7 +29,7 @@ import numpy as np
 from . import factors
 from .config import FusionConfig
 from .counters import Counters
-from .register import Registration, register_on_roads
+from .register import register_on_roads
 from .roadmap import RoadMap
 
 log = logging.getLogger(__name__)
@@ -43,7 +43,6 @@ class CurveFixes:
     def __init__(self, road: RoadMap, cfg: FusionConfig, counters: Counters) -> None:
         self.road, self.cfg, self.counters = road, cfg, counters  # (counts curve_fixes)
         self.enabled = cfg.curve_fixes and cfg.use_map
-        self.last: Registration | None = None  # the registration behind the last fix
         self.drift_ratio = math.inf  # the GPS window's odometry drift over the configured σ's (inf: no window)
         self._path: collections.deque[tuple[float, float, float, float]] = collections.deque()  # (s, x, y, yaw)
         self._s_m = 0.0  # path length since the path began
@@ -88,7 +87,6 @@ class CurveFixes:
         if reg is None or reg.shift_m > cfg.curve_fix_max_shift_m or \
                 not reg.decisive(cfg.curve_fix_ratio, cfg.curve_fix_max_rms_m, cfg.curve_fix_min_shift_m):
             return None
-        self.last = reg
         self.counters.curve_fixes += 1
         log.debug("curve fix at frame %d: shift (%.1f, %.1f) m, RMS %.2f m, runner-up %.2f m, unshifted %.2f m", k,
                   reg.dx_m, reg.dy_m, reg.rms_m, reg.runner_up_rms_m, reg.rms_unshifted_m)
