@@ -44,51 +44,65 @@ class CurveFixes:
         self.road, self.cfg, self.counters = road, cfg, counters  # (counts curve_fixes)
         self.enabled = cfg.curve_fixes and cfg.use_map
         self.drift_ratio = math.inf  # the GPS window's odometry drift over the configured σ's (inf: no window)
-        self._path: collections.deque[tuple[float, float, float, float]] = collections.deque()  # (s, x, y, yaw)
+        # (s, x, y, yaw, frame, t)
+        self._path: collections.deque[tuple[float, float, float, float, int, float]] = collections.deque()
         self._s_m = 0.0  # path length since the path began
         self._since_m = 0.0  # driving since the last registration
+        self.last_shift_m = (0.0, 0.0)  # the last fix's shift (map frame)
 
     def forget(self) -> None:
         """Start the path afresh: after a fix, a re-anchoring or a GPS fix the estimate moved."""
         self._path.clear()
         self._s_m = self._since_m = 0.0
 
-    def step(self, k: int, t: float, pred: gtsam.Pose3, last_gps_t: float = -math.inf) -> gtsam.NonlinearFactor | None:
-        """Frame k at time t with its predicted pose (map frame), the last used GPS fix's time: the fix it gets, or
-        None. Within ``road_fix_after_gps_s`` of a GPS fix the path starts afresh (GPS places the estimate)."""
+    def step(self, k: int, t: float, pred: gtsam.Pose3, last_gps_t: float = -math.inf) -> list[gtsam.NonlinearFactor]:
+        """Frame k at time t with its predicted pose (map frame), the last used GPS fix's time: the fix's
+        factors (none: no fix). Within ``road_fix_after_gps_s`` of a GPS fix the path starts afresh (GPS places
+        the estimate)."""
         cfg = self.cfg
         if not self.enabled or self.drift_ratio < cfg.curve_fix_min_drift_ratio:
-            return None
+            return []
         if t - last_gps_t < cfg.road_fix_after_gps_s:
             self.forget()
-            return None
+            return []
         x, y, yaw = pred.x(), pred.y(), pred.rotation().yaw()
         if self._path:
-            _, px, py, pyaw = self._path[-1]
+            _, px, py, pyaw, _, _ = self._path[-1]
             moved = math.hypot(x - px, y - py)
             self._s_m += moved
             self._since_m += moved
             yaw = pyaw + math.remainder(yaw - pyaw, 2.0 * math.pi)  # unwrapped along the path
-        self._path.append((self._s_m, x, y, yaw))
+        self._path.append((self._s_m, x, y, yaw, k, t))
         while len(self._path) > 2 and self._s_m - self._path[1][0] >= cfg.curve_fix_path_m:
             self._path.popleft()
         if self._since_m < cfg.curve_fix_every_m or self._s_m - self._path[0][0] < cfg.curve_fix_path_m:
-            return None
+            return []
         self._since_m = 0.0
         path = np.asarray(self._path)
         # the turn of the path's axis (doubled angles): a turn back on the spot folds the path onto itself, a straight
         # line whatever its headings' range
         axis = np.unwrap(2.0 * path[:, 3]) / 2.0
         if math.degrees(axis.max() - axis.min()) < cfg.curve_fix_turn_deg:
-            return None
+            return []
         reg = register_on_roads(self.road, path[:, 1:3], cfg.curve_fix_radius_m, cell_m=cfg.curve_fix_cell_m,
                                 cap_m=cfg.curve_fix_cap_m, separation_m=cfg.curve_fix_separation_m,
                                 headings_rad=path[:, 3] if cfg.curve_fix_headings else None)
         if reg is None or reg.shift_m > cfg.curve_fix_max_shift_m or \
                 not reg.decisive(cfg.curve_fix_ratio, cfg.curve_fix_max_rms_m, cfg.curve_fix_min_shift_m):
-            return None
+            return []
         self.counters.curve_fixes += 1
         log.debug("curve fix at frame %d: shift (%.1f, %.1f) m, RMS %.2f m, runner-up %.2f m, unshifted %.2f m", k,
                   reg.dx_m, reg.dy_m, reg.rms_m, reg.runner_up_rms_m, reg.rms_unshifted_m)
         self.forget()
-        return factors.gps_factor(cfg.state, k, x + reg.dx_m, y + reg.dy_m, None, cfg.curve_fix_sigma_m)
+        self.last_shift_m = (reg.dx_m, reg.dy_m)
+        return self._fixes(path, reg.dx_m, reg.dy_m, t)
+
+    def _fixes(self, path: np.ndarray, dx_m: float, dy_m: float, t: float) -> list[gtsam.NonlinearFactor]:
+        """The shift as position factors on up to ``curve_fix_frames`` frames of the path (the current one last)."""
+        cfg = self.cfg
+        recent = np.flatnonzero(path[:, 5] >= t - 0.5 * cfg.lag_s)
+        rows = recent[np.unique(np.round(np.linspace(len(recent) - 1, 0, min(cfg.curve_fix_frames, len(recent)))))
+                      .astype(int)]
+        sigma = cfg.curve_fix_sigma_m * math.sqrt(len(rows))
+        return [factors.gps_factor(cfg.state, int(path[i, 4]), path[i, 1] + dx_m, path[i, 2] + dy_m, None, sigma)
+                for i in rows]

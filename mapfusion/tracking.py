@@ -28,6 +28,7 @@ how settled the posterior is (``road_fix_kld_epsilon``: KLD-sampling), and a sta
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 import logging
 import math
 
@@ -36,7 +37,7 @@ import numpy as np
 
 from . import factors
 from .association import MapAssociation
-from .config import FusionConfig
+from .config import FusionConfig, StateModel
 from .counters import Counters
 from .curvefix import CurveFixes
 from .relocalise import Located, Region, RoadParticles, Search
@@ -254,6 +255,7 @@ class RoadFixing:
     _smoother: Smoother | None
     _search: Search
     _association: MapAssociation
+    _restart_from: Callable[..., None]
 
     def _road_fix(self, k: int, pred: gtsam.Pose3) -> bool:
         """The road particles' fix on frame k while GPS is silent; True if added. Each fix also moves the
@@ -287,9 +289,16 @@ class RoadFixing:
         if self._search.active is not None:
             self._curve_fixes.forget()
             return False
-        fix = self._curve_fixes.step(k, self.track.t[k], pred, self._road_fixes.last_gps_t)
-        if fix is None:
-            return False
+        fixes = self._curve_fixes.step(k, self.track.t[k], pred, self._road_fixes.last_gps_t)
         assert self._smoother is not None
-        self._smoother.add(fix)
-        return True
+        dx, dy = self._curve_fixes.last_shift_m
+        if fixes and math.hypot(dx, dy) >= self.cfg.curve_fix_reanchor_m:
+            cfg = self.cfg
+            pose = gtsam.Pose3(pred.rotation(), gtsam.Point3(pred.x() + dx, pred.y() + dy, pred.z()))
+            sigmas = factors.pose_sigmas(StateModel.planar, math.radians(cfg.relocalise_yaw_sigma_floor_deg),
+                                         cfg.curve_fix_sigma_m)
+            self._restart_from(k, pose, factors.diagonal(sigmas), cfg.curve_fix_sigma_m)
+            return True
+        for fix in fixes:
+            self._smoother.add(fix)
+        return bool(fixes)

@@ -40,8 +40,10 @@ def _fixes(road, cfg, x, y, yaw, dx, dy, t0_s=100.0, gps_t_s=-math.inf, drift_ra
     cf.drift_ratio = drift_ratio
     out = []
     for k in range(len(x)):
-        f = cf.step(k, t0_s + 0.1 * k, _pose(x[k] + dx, y[k] + dy, yaw[k]), gps_t_s)
-        if f is not None:
+        fs = cf.step(k, t0_s + 0.1 * k, _pose(x[k] + dx, y[k] + dy, yaw[k]), gps_t_s)
+        if fs:
+            f = fs[-1]  # the current frame's
+            assert f.keys() == [gtsam.symbol("x", k)]
             p = f.measurementIn()
             out.append((k, p[0], p[1], 1.0 / math.sqrt(f.noiseModel().precisions()[0])))
     assert cf.counters.curve_fixes == len(out)
@@ -155,6 +157,33 @@ def test_curve_fixes_hold_a_drive_whose_scale_wandered_closer_to_the_truth(road)
         off_errs.append(off)
         on_errs.append(on)
     assert np.mean(on_errs) < 0.8 * np.mean(off_errs), (off_errs, on_errs)
+
+
+def test_a_fix_spread_over_frames_shifts_each_by_the_same_and_weighs_one(road):
+    """With curve_fix_frames n, a fix is n position factors on distinct frames of the path within half the lag, the
+    current one among them, each frame's own predicted position shifted by the one registered shift, each σ·√n:
+    together the precision of one fix, and a translation of the recent path rather than a pull on its last frame
+    (which the smoother meets by turning the window's heading)."""
+    x, y, yaw, _ = graph_route(road, 3, 1500.0)
+    one = FusionConfig(curve_fixes=True, curve_fix_frames=1)
+    five = FusionConfig(curve_fixes=True, curve_fix_frames=5)
+    cf1, cf5 = CurveFixes(road, one, Counters()), CurveFixes(road, five, Counters())
+    got = 0
+    for k in range(len(x)):
+        t = 100.0 + 0.1 * k
+        pose = _pose(x[k] + 6.0, y[k] + 6.0, yaw[k])
+        f1, f5 = cf1.step(k, t, pose), cf5.step(k, t, pose)
+        assert len(f1) == (1 if f5 else 0) and len(f5) in (0, 5)
+        if not f5:
+            continue
+        got += 1
+        frames = [gtsam.Symbol(f.keys()[0]).index() for f in f5]
+        assert len(set(frames)) == 5 and k in frames and all(t - 0.1 * (k - j) >= t - 0.5 * five.lag_s for j in frames)
+        shift = f1[0].measurementIn()[:2] - np.array([x[k] + 6.0, y[k] + 6.0])
+        for j, f in zip(frames, f5):
+            assert np.allclose(f.measurementIn()[:2] - np.array([x[j] + 6.0, y[j] + 6.0]), shift)
+            assert math.isclose(f.noiseModel().precisions()[0], f1[0].noiseModel().precisions()[0] / 5)
+    assert got > 0
 
 
 def test_headings_of_another_length_than_the_points_are_refused(road):
