@@ -1244,11 +1244,11 @@ class FusionConfig:
                                      "property test's Helsinki route seed 1, a fix 4 m off")
     curve_fix_sigma_m: float = param(1.0, "σ of a curve fix (per axis).", unit="m", min=0.01, max=1000.0,
                                      source="issue 17; by measurement")
-    curve_fix_reanchor_m: float = param(math.inf, "A curve fix shifting the estimate at least this far re-anchors "
+    curve_fix_reanchor_m: float = param(0.0, "A curve fix shifting the estimate at least this far re-anchors "
                                         "the smoother on the shifted pose (σ curve_fix_sigma_m, heading σ "
                                         "relocalise_yaw_sigma_floor_deg) instead of entering as factors: the fixed-lag "
                                         "window's marginal still holds the estimate where the map priors had it, and "
-                                        "a factor pulls against it (inf: never).", unit="m", min=0.0,
+                                        "a factor pulls against it (0: never).", unit="m", min=0.0,
                                         source="issue 17; by measurement")
     curve_fix_frames: int = param(1, "Frames a curve fix's shift is spread over: the current one and those of the "
                                   "path within half the smoother's lag, evenly, each σ·√n so that together they weigh "

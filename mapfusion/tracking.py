@@ -292,7 +292,7 @@ class RoadFixing:
         fixes = self._curve_fixes.step(k, self.track.t[k], pred, self._road_fixes.last_gps_t)
         assert self._smoother is not None
         dx, dy = self._curve_fixes.last_shift_m
-        if fixes and math.hypot(dx, dy) >= self.cfg.curve_fix_reanchor_m:
+        if fixes and 0 < self.cfg.curve_fix_reanchor_m <= math.hypot(dx, dy):
             cfg = self.cfg
             pose = gtsam.Pose3(pred.rotation(), gtsam.Point3(pred.x() + dx, pred.y() + dy, pred.z()))
             sigmas = factors.pose_sigmas(StateModel.planar, math.radians(cfg.relocalise_yaw_sigma_floor_deg),
