@@ -49,6 +49,7 @@ class CurveFixes:
         self._s_m = 0.0  # path length since the path began
         self._since_m = 0.0  # driving since the last registration
         self.last_shift_m = (0.0, 0.0)  # the last fix's shift (map frame)
+        self.last_path_k0 = -1  # the first frame of the last fix's path
 
     def forget(self) -> None:
         """Start the path afresh: after a fix, a re-anchoring or a GPS fix the estimate moved."""
@@ -94,7 +95,7 @@ class CurveFixes:
         log.debug("curve fix at frame %d: shift (%.1f, %.1f) m, RMS %.2f m, runner-up %.2f m, unshifted %.2f m", k,
                   reg.dx_m, reg.dy_m, reg.rms_m, reg.runner_up_rms_m, reg.rms_unshifted_m)
         self.forget()
-        self.last_shift_m = (reg.dx_m, reg.dy_m)
+        self.last_shift_m, self.last_path_k0 = (reg.dx_m, reg.dy_m), int(path[0, 4])
         return self._fixes(path, reg.dx_m, reg.dy_m, t)
 
     def _fixes(self, path: np.ndarray, dx_m: float, dy_m: float, t: float) -> list[gtsam.NonlinearFactor]:

@@ -298,6 +298,12 @@ class RoadFixing:
             sigmas = factors.pose_sigmas(StateModel.planar, math.radians(cfg.relocalise_yaw_sigma_floor_deg),
                                          cfg.curve_fix_sigma_m)
             self._restart_from(k, pose, factors.diagonal(sigmas), cfg.curve_fix_sigma_m)
+            # the registration placed the whole path: its frames' final estimates move with it
+            smoothed = self._smoother.smoothed
+            for j in range(max(self._curve_fixes.last_path_k0, self.track.first), k):
+                p = smoothed.get(j)
+                if p is not None:
+                    smoothed[j] = gtsam.Pose3(p.rotation(), gtsam.Point3(p.x() + dx, p.y() + dy, p.z()))
             return True
         for fix in fixes:
             self._smoother.add(fix)

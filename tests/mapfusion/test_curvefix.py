@@ -186,6 +186,43 @@ def test_a_fix_spread_over_frames_shifts_each_by_the_same_and_weighs_one(road):
     assert got > 0
 
 
+def test_a_curve_fix_beyond_curve_fix_reanchor_m_puts_the_estimate_on_the_shifted_pose(road, monkeypatch):
+    """With curve_fix_reanchor_m a fix that far or farther re-anchors the smoother at its frame: that frame's causal
+    estimate is the predicted pose moved by the registered shift (its prior the only factor on the frame), not a
+    compromise with the window's marginal, and the final estimates of the registered path's frames before it are
+    their causal ones moved by the same shift; nearer fixes enter as factors. Not counted as a re-localisation."""
+    seen, pred_x, pred_y = [], {}, {}
+    step = CurveFixes.step
+
+    def spy(self, k, t, pred, last_gps_t=-math.inf):
+        fixes = step(self, k, t, pred, last_gps_t)
+        if fixes:
+            dx, dy = self.last_shift_m
+            pred_x[k], pred_y[k] = pred.x(), pred.y()
+            seen.append((k, pred.x() + dx, pred.y() + dy, math.hypot(dx, dy)))
+        return fixes
+
+    monkeypatch.setattr(CurveFixes, "step", spy)
+    cfg = FusionConfig(road_fixes=False, curve_fixes=True, curve_fix_frames=5, curve_fix_reanchor_m=4.0)
+    reanchored = kept = 0
+    for seed in (1, 2, 3):
+        seen.clear()
+        eng, _, _ = _run(road, cfg, *_wandering(road, seed, scale_after=1.03), 400)
+        assert eng.counters.curve_fixes == len(seen) and eng.counters.map_relocalisations == 0
+        final = eng.trajectory()
+        for k, x, y, shift in seen:
+            p = eng.track.online[k]
+            if shift >= cfg.curve_fix_reanchor_m:
+                reanchored += 1
+                assert math.hypot(p.x() - x, p.y() - y) < 1e-3, (seed, k, shift)
+                before, mended = eng.track.online[k - 1], final[eng.track.t[k - 1]]
+                moved = (mended.x() - before.x(), mended.y() - before.y())
+                assert math.hypot(moved[0] - (x - pred_x[k]), moved[1] - (y - pred_y[k])) < 1e-6, (seed, k, moved)
+            elif math.hypot(p.x() - x, p.y() - y) > 0.1:
+                kept += 1
+    assert reanchored > 0 and kept > 0, (reanchored, kept)
+
+
 def test_headings_of_another_length_than_the_points_are_refused(road):
     """A heading per point, or a ValueError naming both counts."""
     x, y, yaw, _ = graph_route(road, 2, 200.0)
