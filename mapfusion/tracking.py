@@ -28,9 +28,9 @@ how settled the posterior is (``road_fix_kld_epsilon``: KLD-sampling), and a sta
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 import logging
 import math
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
@@ -290,10 +290,12 @@ class RoadFixing:
             self._curve_fixes.forget()
             return False
         fixes = self._curve_fixes.step(k, self.track.t[k], pred, self._road_fixes.last_gps_t)
+        if not fixes:
+            return False
         assert self._smoother is not None
+        cfg = self.cfg
         dx, dy = self._curve_fixes.last_shift_m
-        if fixes and 0 < self.cfg.curve_fix_reanchor_m <= math.hypot(dx, dy):
-            cfg = self.cfg
+        if 0 < cfg.curve_fix_reanchor_m <= math.hypot(dx, dy):
             pose = gtsam.Pose3(pred.rotation(), gtsam.Point3(pred.x() + dx, pred.y() + dy, pred.z()))
             sigmas = factors.pose_sigmas(StateModel.planar, math.radians(cfg.relocalise_yaw_sigma_floor_deg),
                                          cfg.curve_fix_sigma_m)
@@ -307,4 +309,4 @@ class RoadFixing:
             return True
         for fix in fixes:
             self._smoother.add(fix)
-        return bool(fixes)
+        return True

@@ -193,15 +193,14 @@ def test_a_curve_fix_beyond_curve_fix_reanchor_m_puts_the_estimate_on_the_shifte
     estimate is the predicted pose moved by the registered shift (its prior the only factor on the frame), not a
     compromise with the window's marginal, and the final estimates of the registered path's frames before it are
     their causal ones moved by the same shift; nearer fixes enter as factors. Not counted as a re-localisation."""
-    seen, pred_x, pred_y = [], {}, {}
+    seen = []
     step = CurveFixes.step
 
     def spy(self, k, t, pred, last_gps_t=-math.inf):
         fixes = step(self, k, t, pred, last_gps_t)
         if fixes:
             dx, dy = self.last_shift_m
-            pred_x[k], pred_y[k] = pred.x(), pred.y()
-            seen.append((k, pred.x() + dx, pred.y() + dy, math.hypot(dx, dy)))
+            seen.append((k, pred.x() + dx, pred.y() + dy, dx, dy))
         return fixes
 
     monkeypatch.setattr(CurveFixes, "step", spy)
@@ -212,14 +211,14 @@ def test_a_curve_fix_beyond_curve_fix_reanchor_m_puts_the_estimate_on_the_shifte
         eng, _, _ = _run(road, cfg, *_wandering(road, seed, scale_after=1.03), 400)
         assert eng.counters.curve_fixes == len(seen) and eng.counters.map_relocalisations == 0
         final = eng.trajectory()
-        for k, x, y, shift in seen:
+        for k, x, y, dx, dy in seen:
             p = eng.track.online[k]
-            if shift >= cfg.curve_fix_reanchor_m:
+            if math.hypot(dx, dy) >= cfg.curve_fix_reanchor_m:
                 reanchored += 1
-                assert math.hypot(p.x() - x, p.y() - y) < 1e-3, (seed, k, shift)
+                assert math.hypot(p.x() - x, p.y() - y) < 1e-3, (seed, k, dx, dy)
                 before, mended = eng.track.online[k - 1], final[eng.track.t[k - 1]]
                 moved = (mended.x() - before.x(), mended.y() - before.y())
-                assert math.hypot(moved[0] - (x - pred_x[k]), moved[1] - (y - pred_y[k])) < 1e-6, (seed, k, moved)
+                assert math.hypot(moved[0] - dx, moved[1] - dy) < 1e-6, (seed, k, moved)
             elif math.hypot(p.x() - x, p.y() - y) > 0.1:
                 kept += 1
     assert reanchored > 0 and kept > 0, (reanchored, kept)
