@@ -1240,6 +1240,14 @@ class FusionConfig:
                                              "a window (a cold start) the fixes are on.", min=0.0, max=1000.0,
                                              source="issue 17, session 42: KITTI's ground truth on OSM, 0.3-1.0; "
                                              "the simulated VO 1.1-9.1, real stereo VO 2.4-6")
+    curve_fix_min_priors: int = param(0, "No curve fix unless the estimate took at least this many map priors (each "
+                                      "one: found off its road) over the last curve_fix_prior_window_m of driving: "
+                                      "an odometry that keeps to its roads by itself knows its place along them better "
+                                      "than a map's bends are drawn, which the GPS window cannot tell (0: no such "
+                                      "test).", min=0, max=100000, source="issue 17, session 44: kitti-full's "
+                                      "clear VIO takes 0-8 map priors a km, its VO 9-56 (docs/method.md)")
+    curve_fix_prior_window_m: float = param(1000.0, "Driving over which curve_fix_min_priors are counted.", unit="m",
+                                            min=1.0, max=1e6, source="issue 17, session 44; by measurement")
     curve_fix_headings: bool = param(True, "A registered point counts only the way-points it may drive along in "
                                      "its heading (register.HEADING_TOLERANCE_DEG): a path is not put on a dual "
                                      "carriageway's other half, 6-10 m across.", source="issue 17, session 42: the "

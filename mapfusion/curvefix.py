@@ -50,11 +50,30 @@ class CurveFixes:
         self._since_m = 0.0  # driving since the last registration
         self.last_shift_m = (0.0, 0.0)  # the last fix's shift (map frame)
         self.last_path_k0 = -1  # the first frame of the last fix's path
+        self._odo_m = 0.0  # driving since the engine began (never reset)
+        self._odo_xy: tuple[float, float] | None = None
+        self._priors_at: collections.deque[float] = collections.deque()  # the odometer at each recent map prior
 
     def forget(self) -> None:
         """Start the path afresh: after a fix, a re-anchoring or a GPS fix the estimate moved."""
         self._path.clear()
         self._s_m = self._since_m = 0.0
+
+    def note_priors(self, pred: gtsam.Pose3, prior: bool) -> None:
+        """Count a frame's driving and whether it took a map prior (every frame, searching or not)."""
+        x, y = pred.x(), pred.y()
+        if self._odo_xy is not None:
+            self._odo_m += math.hypot(x - self._odo_xy[0], y - self._odo_xy[1])
+        self._odo_xy = (x, y)
+        if prior:
+            self._priors_at.append(self._odo_m)
+        while self._priors_at and self._priors_at[0] < self._odo_m - self.cfg.curve_fix_prior_window_m:
+            self._priors_at.popleft()
+
+    def keeps_to_roads(self) -> bool:
+        """Did the estimate take fewer than ``curve_fix_min_priors`` map priors over the last
+        ``curve_fix_prior_window_m``?"""
+        return len(self._priors_at) < self.cfg.curve_fix_min_priors
 
     def step(self, k: int, t: float, pred: gtsam.Pose3, last_gps_t: float = -math.inf) -> list[gtsam.NonlinearFactor]:
         """Frame k at time t with its predicted pose (map frame), the last used GPS fix's time: the fix's
@@ -90,6 +109,9 @@ class CurveFixes:
                                 headings_rad=path[:, 3] if cfg.curve_fix_headings else None)
         if reg is None or reg.shift_m > cfg.curve_fix_max_shift_m or \
                 not reg.decisive(cfg.curve_fix_ratio, cfg.curve_fix_max_rms_m, cfg.curve_fix_min_shift_m):
+            return []
+        if self.keeps_to_roads():
+            self.counters.curve_fixes_gated += 1
             return []
         self.counters.curve_fixes += 1
         log.debug("curve fix at frame %d: shift (%.1f, %.1f) m, RMS %.2f m, runner-up %.2f m, unshifted %.2f m", k,

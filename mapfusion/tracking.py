@@ -256,6 +256,7 @@ class RoadFixing:
     _search: Search
     _association: MapAssociation
     _restart_from: Callable[..., None]
+    map_prior_frames: list[int]
 
     def _road_fix(self, k: int, pred: gtsam.Pose3) -> bool:
         """The road particles' fix on frame k while GPS is silent; True if added. Each fix also moves the
@@ -286,6 +287,7 @@ class RoadFixing:
         very estimate whose path would be registered."""
         if not self._curve_fixes.enabled:
             return False
+        self._curve_fixes.note_priors(pred, bool(self.map_prior_frames) and self.map_prior_frames[-1] == k)
         if self._search.active is not None:
             self._curve_fixes.forget()
             return False

@@ -141,6 +141,39 @@ def test_no_curve_fix_while_gps_comes_off_or_for_a_good_odometry(road):
     assert _fixes(road, ON, x, y, yaw, 6.0, 6.0, drift_ratio=ON.curve_fix_min_drift_ratio)
 
 
+def _fixes_with_priors(road, cfg, x, y, yaw, dx, dy, prior_every: int, priors_until: int | None = None):
+    """As _fixes (frames only), each frame noted first, with a map prior on every ``prior_every``-th frame (0: none)
+    before frame ``priors_until``: (fix frames, counters)."""
+    cf = CurveFixes(road, cfg, Counters())
+    out = []
+    for k in range(len(x)):
+        pose = _pose(x[k] + dx, y[k] + dy, yaw[k])
+        cf.note_priors(pose, prior_every > 0 and k % prior_every == 0 and (priors_until is None or k < priors_until))
+        if cf.step(k, 100.0 + 0.1 * k, pose):
+            out.append(k)
+    return out, cf.counters
+
+
+def test_no_curve_fix_for_an_estimate_that_keeps_to_its_roads(road):
+    """curve_fix_min_priors: the shifted route with a map prior every 50 m (4 in any 200 m window) gets the same fixes
+    as without the test; with none, every decisive registration is counted as gated and none is a fix; with the
+    priors ending half-way, no fix comes once the last of them is more than the window (200 m, a frame a metre)
+    behind, though the same route gets fixes there without the test."""
+    x, y, yaw, _ = graph_route(road, 3, 1500.0)
+    free = [k for k, *_ in _fixes(road, ON, x, y, yaw, 6.0, 6.0)]
+    gated = dataclasses.replace(ON, curve_fix_min_priors=3, curve_fix_prior_window_m=200.0)
+    assert len(free) >= 3
+    assert _fixes_with_priors(road, gated, x, y, yaw, 6.0, 6.0, 50)[0] == free
+    none, counters = _fixes_with_priors(road, gated, x, y, yaw, 6.0, 6.0, 0)
+    assert none == [] and counters.curve_fixes == 0 and counters.curve_fixes_gated >= len(free)
+    half = free[len(free) // 2] - 1
+    stopped, counters = _fixes_with_priors(road, gated, x, y, yaw, 6.0, 6.0, 50, priors_until=half)
+    last_prior = (half - 1) // 50 * 50
+    assert stopped and max(stopped) <= last_prior + 200
+    assert [k for k in free if k > last_prior + 200], "the route has fixes after the window without the test"
+    assert counters.curve_fixes_gated >= 1
+
+
 def test_curve_fixes_hold_a_drive_whose_scale_wandered_closer_to_the_truth(road):
     """The road fixes' test drives with the scale 3% off once GPS ends (heading drifting 2°/100 m), road fixes off:
     with curve fixes no drive's mean online error after GPS is worse by more than 0.5 m, and over the eight it is
