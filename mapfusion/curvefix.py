@@ -60,7 +60,10 @@ class CurveFixes:
         self._s_m = self._since_m = 0.0
 
     def note_priors(self, pred: gtsam.Pose3, prior: bool) -> None:
-        """Count a frame's driving and whether it took a map prior (every frame, searching or not)."""
+        """Count a frame's driving and whether it took a map prior (every frame, searching or not; nothing to count
+        with ``curve_fix_min_priors`` 0)."""
+        if self.cfg.curve_fix_min_priors <= 0:
+            return
         x, y = pred.x(), pred.y()
         if self._odo_xy is not None:
             self._odo_m += math.hypot(x - self._odo_xy[0], y - self._odo_xy[1])
