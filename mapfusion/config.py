@@ -1242,6 +1242,13 @@ class FusionConfig:
                                              "a window (a cold start) the fixes are on.", min=0.0, max=1000.0,
                                              source="issue 17, session 42: KITTI's ground truth on OSM, 0.3-1.0; "
                                              "the simulated VO 1.1-9.1, real stereo VO 2.4-6")
+    curve_fix_min_gain_m: float = param(0.0, "No curve fix unless the shift brings the registered path's RMS "
+                                        "distance to the roads down by at least this much: a path that already "
+                                        "lies on its roads unshifted cannot tell a shift of a few metres from the "
+                                        "map's own drawing (0: no such test).", unit="m", min=0.0, max=1000.0,
+                                        source="issue 17, session 45: of 650 decisive registrations, those "
+                                        "gaining under 2 m were the bad ones (docs/method.md); measured, not the "
+                                        "default")
     curve_fix_min_priors: int = param(0, "No curve fix unless the estimate took at least this many map priors (each "
                                       "one: found off its road) over the last curve_fix_prior_window_m of driving: "
                                       "an odometry that keeps to its roads by itself knows its place along them better "
@@ -1250,6 +1257,12 @@ class FusionConfig:
                                       "clear VIO takes 0-8 map priors a km, its VO 9-56 (docs/method.md)")
     curve_fix_prior_window_m: float = param(1000.0, "Driving over which curve_fix_min_priors are counted.", unit="m",
                                             min=1.0, max=1e6, source="issue 17, session 44; by measurement")
+    curve_fix_in_band: bool = param(False, "A registered point's distance is to its road's carriageway (lanes × "
+                                    "lane_width_m wide), not to the centre line: a vehicle in an outer lane is on "
+                                    "its road, and a shift that pulls its path onto the drawn line is no fix.",
+                                    source="issue 17, session 45: Berlin's Großer Stern, the truth 5-8 m off the "
+                                    "centre line of a 4-6 lane ring, a fix 7 m the wrong way; measured, not the "
+                                    "default")
     curve_fix_headings: bool = param(True, "A registered point counts only the way-points it may drive along in "
                                      "its heading (register.HEADING_TOLERANCE_DEG): a path is not put on a dual "
                                      "carriageway's other half, 6-10 m across.", source="issue 17, session 42: the "

@@ -8,10 +8,12 @@ GPS is silent, when the estimate's last ``curve_fix_path_m`` turned by at least 
 turn: a turn back on the spot folds the path onto a line), that stretch is registered on the road way-points
 (:func:`~mapfusion.register.register_on_roads`, on a ``curve_fix_cell_m`` grid within ``curve_fix_radius_m``). A
 shift longer than ``curve_fix_min_shift_m`` and at most ``curve_fix_max_shift_m`` (short of the disc's edge, where
-the true minimum may lie beyond it) that fits within ``curve_fix_max_rms_m`` and beats every shift farther than
-``curve_fix_separation_m`` from it by ``curve_fix_ratio`` enters the graph as a position fix on the current frame (σ
-``curve_fix_sigma_m``). The path is then forgotten, so no stretch of road is counted twice: fixes sharing one
-stretch's map error would outweigh the odometry (docs/method.md, "Fixes along the road while the estimate agrees").
+the true minimum may lie beyond it) that fits within ``curve_fix_max_rms_m``, beats every shift farther than
+``curve_fix_separation_m`` from it by ``curve_fix_ratio`` and fits at least ``curve_fix_min_gain_m`` better than no
+shift (a path that already lies on its roads cannot tell a few metres' shift from the map's drawing and the lanes)
+enters the graph as a position fix on the current frame (σ ``curve_fix_sigma_m``). The path is then forgotten, so
+no stretch of road is counted twice: fixes sharing one stretch's map error would outweigh the odometry
+(docs/method.md, "Fixes along the road while the estimate agrees").
 An odometry whose GPS window showed it drifting less than ``curve_fix_min_drift_ratio`` times what its configured σ
 allows gets none: it knows where it is along the road better than a map's bends are drawn (KITTI's own poses on
 OSM).
@@ -53,6 +55,7 @@ class CurveFixes:
         self._odo_m = 0.0  # driving since the engine began (never reset)
         self._odo_xy: tuple[float, float] | None = None
         self._priors_at: collections.deque[float] = collections.deque()  # the odometer at each recent map prior
+        self._half_width_m = road.width_m(cfg.lane_width_m) / 2.0 if cfg.curve_fix_in_band else None
 
     def forget(self) -> None:
         """Start the path afresh: after a fix, a re-anchoring or a GPS fix the estimate moved."""
@@ -109,11 +112,12 @@ class CurveFixes:
             return []
         reg = register_on_roads(self.road, path[:, 1:3], cfg.curve_fix_radius_m, cell_m=cfg.curve_fix_cell_m,
                                 cap_m=cfg.curve_fix_cap_m, separation_m=cfg.curve_fix_separation_m,
-                                headings_rad=path[:, 3] if cfg.curve_fix_headings else None)
+                                headings_rad=path[:, 3] if cfg.curve_fix_headings else None,
+                                half_width_m=self._half_width_m)
         if reg is None or reg.shift_m > cfg.curve_fix_max_shift_m or \
                 not reg.decisive(cfg.curve_fix_ratio, cfg.curve_fix_max_rms_m, cfg.curve_fix_min_shift_m):
             return []
-        if self.keeps_to_roads():
+        if self.keeps_to_roads() or reg.rms_unshifted_m - reg.rms_m < cfg.curve_fix_min_gain_m:
             self.counters.curve_fixes_gated += 1
             return []
         self.counters.curve_fixes += 1

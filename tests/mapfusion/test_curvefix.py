@@ -14,11 +14,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapfusion import FusionConfig, RoadMap
+from mapfusion import FusionConfig, RoadMap, curvefix
 from mapfusion.counters import Counters
 from mapfusion.curvefix import CurveFixes
 from mapfusion.register import register_on_roads
-from tests.helpers import MAPS, graph_route, straight_road, write_osm
+from tests.helpers import MAPS, circle_road, graph_route, straight_road, write_osm
 from tests.mapfusion.test_tracking import _run, _wandering
 
 ON = FusionConfig(curve_fixes=True)
@@ -128,6 +128,47 @@ def test_no_curve_fix_on_a_path_already_on_its_roads(road):
     """Unshifted, the best shift is under curve_fix_min_shift_m: no fix."""
     for seed in range(5):
         assert _fixes(road, ON, *graph_route(road, seed, 1500.0)[:3], 0.0, 0.0) == []
+
+
+def test_a_fix_only_where_its_shift_improves_the_fit_by_curve_fix_min_gain_m(road, monkeypatch):
+    """curve_fix_min_gain_m: on routes shifted 3.5 m, every fix comes from a registration whose shift brought the
+    path's RMS distance to the roads down by at least that much, and decisive registrations that did less are counted
+    as gated (both happen: the test has something to check); a gain beyond curve_fix_cap_m, which no path can reach
+    (every distance is capped there), keeps every fix out."""
+    regs = []
+
+    def spy(*args, **kwargs):
+        reg = register_on_roads(*args, **kwargs)
+        regs.append(reg)
+        return reg
+
+    monkeypatch.setattr(curvefix, "register_on_roads", spy)
+    gated_cfg = dataclasses.replace(ON, curve_fix_min_gain_m=2.0)
+    gains, gated = [], 0
+    for seed in range(6):
+        x, y, yaw, _ = graph_route(road, seed, 1500.0)
+        cf = CurveFixes(road, gated_cfg, Counters())
+        for k in range(len(x)):
+            if cf.step(k, 100.0 + 0.1 * k, _pose(x[k] + 3.5 * math.cos(seed), y[k] + 3.5 * math.sin(seed), yaw[k])):
+                gains.append(regs[-1].rms_unshifted_m - regs[-1].rms_m)
+        gated += cf.counters.curve_fixes_gated
+        unreachable = dataclasses.replace(ON, curve_fix_min_gain_m=ON.curve_fix_cap_m + 0.01)
+        assert _fixes(road, unreachable, x, y, yaw, 3.5 * math.cos(seed), 3.5 * math.sin(seed)) == []
+    assert gains and gated > 0, (gains, gated)
+    assert min(gains) >= 2.0, gains
+
+
+def test_a_path_in_an_outer_lane_gets_no_fix_with_curve_fix_in_band(tmp_path):
+    """Round a six-lane ring (radius 100 m, 18 m wide) 6 m inside its centre line, where a vehicle in its inner
+    lane drives: registered on the centre line the path gets fixes pulling it outward, onto the line; registered
+    on the carriageway (curve_fix_in_band) it lies on its road and gets none."""
+    ring = RoadMap.from_osm(write_osm(tmp_path, [(circle_road(100.0, n=180), {
+        "highway": "primary", "oneway": "yes", "lanes": "6", "junction": "roundabout"})]), cache=False)
+    a = np.arange(0.0, 3.0 * 2 * math.pi, 1.0 / 94.0)  # a point a metre, three times round
+    x, y, yaw = 94.0 * np.cos(a), 94.0 * np.sin(a), a + math.pi / 2
+    line = _fixes(ring, ON, x, y, yaw, 0.0, 0.0)
+    assert line and all(math.hypot(fx, fy) > 94.0 + 2.0 for _, fx, fy, _ in line), line
+    assert _fixes(ring, dataclasses.replace(ON, curve_fix_in_band=True), x, y, yaw, 0.0, 0.0) == []
 
 
 def test_no_curve_fix_while_gps_comes_off_or_for_a_good_odometry(road):
