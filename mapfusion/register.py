@@ -126,6 +126,8 @@ def register_on_roads(road: RoadMap, xy_m: np.ndarray, radius_m: float, cell_m: 
     if not (radius_m > 0 and cell_m > 0 and cap_m > 0 and separation_m >= 0):
         raise ValueError(f"register_on_roads: radius_m, cell_m and cap_m must be > 0, separation_m ≥ 0; got "
                          f"{radius_m}, {cell_m}, {cap_m}, {separation_m}")
+    if half_width_m is not None and np.shape(half_width_m) != (len(road.xy_m),):
+        raise ValueError(f"register_on_roads: {len(road.xy_m)} way-points but {np.shape(half_width_m)} half-widths")
     xy = np.asarray(xy_m, dtype=float).reshape(-1, 2)
     idx = _thin_index(xy, thin_m)
     pts = xy[idx]
@@ -147,8 +149,6 @@ def register_on_roads(road: RoadMap, xy_m: np.ndarray, radius_m: float, cell_m: 
     ny = int(math.ceil((pts[:, 1].max() + pad - y0) / cell_m)) + 1
     way = road.xy_m
     inside = (way[:, 0] >= x0) & (way[:, 0] < x0 + nx * cell_m) & (way[:, 1] >= y0) & (way[:, 1] < y0 + ny * cell_m)
-    if half_width_m is not None and np.shape(half_width_m) != (len(way),):
-        raise ValueError(f"register_on_roads: {len(way)} way-points but {np.shape(half_width_m)} half-widths")
     fields = _distance_fields(road, inside, x0, y0, (ny, nx), cell_m, cap_m, bins, half_width_m)
     # every point's cost over the (2r + 1)² shifts is a window of its field: their sum, one window per point
     ix = ((pts[:, 0] - x0) // cell_m).astype(np.int64)

@@ -72,6 +72,14 @@ def write_osm(tmp_path: Path, roads: list[tuple[np.ndarray, dict]], name: str = 
     return p
 
 
+
+def six_lane_ring(tmp_path: Path):
+    """A one-way six-lane ring of radius 100 m (18 m wide with the paper's 3 m lanes), like Berlin's Großer Stern."""
+    from mapfusion import RoadMap
+
+    return RoadMap.from_osm(write_osm(tmp_path, [(circle_road(100.0, n=180), {
+        "highway": "primary", "oneway": "yes", "lanes": "6", "junction": "roundabout"})]), cache=False)
+
 @dataclass
 class TruthTrack:
     """A level ground-truth trajectory in a map's ENU frame (the fields of ``sim.sensors.Truth``)."""

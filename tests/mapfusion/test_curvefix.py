@@ -18,7 +18,7 @@ from mapfusion import FusionConfig, RoadMap, curvefix
 from mapfusion.counters import Counters
 from mapfusion.curvefix import CurveFixes
 from mapfusion.register import register_on_roads
-from tests.helpers import MAPS, circle_road, graph_route, straight_road, write_osm
+from tests.helpers import MAPS, graph_route, six_lane_ring, straight_road, write_osm
 from tests.mapfusion.test_tracking import _run, _wandering
 
 ON = FusionConfig(curve_fixes=True)
@@ -162,8 +162,7 @@ def test_a_path_in_an_outer_lane_gets_no_fix_with_curve_fix_in_band(tmp_path):
     """Round a six-lane ring (radius 100 m, 18 m wide) 6 m inside its centre line, where a vehicle in its inner
     lane drives: registered on the centre line the path gets fixes pulling it outward, onto the line; registered
     on the carriageway (curve_fix_in_band) it lies on its road and gets none."""
-    ring = RoadMap.from_osm(write_osm(tmp_path, [(circle_road(100.0, n=180), {
-        "highway": "primary", "oneway": "yes", "lanes": "6", "junction": "roundabout"})]), cache=False)
+    ring = six_lane_ring(tmp_path)
     a = np.arange(0.0, 3.0 * 2 * math.pi, 1.0 / 94.0)  # a point a metre, three times round
     x, y, yaw = 94.0 * np.cos(a), 94.0 * np.sin(a), a + math.pi / 2
     line = _fixes(ring, ON, x, y, yaw, 0.0, 0.0)
