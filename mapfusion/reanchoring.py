@@ -95,6 +95,27 @@ class Reanchoring:
         self._search.begin(Region(float(x), float(y), float(radius_m)),
                            (self.cfg.reloc_scale_min, self.cfg.reloc_scale_max))
 
+    def reanchor_at(self, x_m: float, y_m: float, yaw_rad: float, sigma_m: float = 0.5,
+                    yaw_sigma_rad: float = 0.01) -> None:
+        """Re-anchor the estimate on a pose known from elsewhere (the map's ENU frame, m; yaw from east, rad): the
+        smoother restarts at the last frame with that pose as its prior (σ ``sigma_m`` a horizontal axis,
+        ``yaw_sigma_rad``), as the engine's own re-localisations do, and any running search ends. For a pose from
+        outside (an operator, another localiser), and to measure what a perfect re-localisation would give
+        (``mapfusion.harness.bounds``)."""
+        if self.alignment is None or self._smoother is None or not self.track.t:
+            raise EngineError("reanchor_at needs an estimate to re-anchor: the engine is not initialised yet")
+        values = (x_m, y_m, yaw_rad, sigma_m, yaw_sigma_rad)
+        if not all(math.isfinite(v) for v in values) or sigma_m <= 0 or yaw_sigma_rad <= 0:
+            raise EngineError(f"reanchor_at needs finite x, y, yaw and σs > 0, got {values}")
+        k = len(self.track) - 1
+        was = self.track.online[k]
+        z = was.z() if was is not None else 0.0
+        pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw_rad), gtsam.Point3(x_m, y_m, z))
+        self._search.active = self._search.watching = None
+        self._restart_from(k, pose, factors.diagonal(factors.pose_sigmas(StateModel.planar, yaw_sigma_rad, sigma_m)),
+                           sigma_m)
+        self._update()
+
     @property
     def searching_from_region(self) -> bool:
         """A cold start's search is running (no estimate yet)."""

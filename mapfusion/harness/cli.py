@@ -240,7 +240,8 @@ def _print_sequence_stress(name: str, seq) -> None:
 
 @scenarios_app.command("generate")
 def scenarios_generate(
-    family: Annotated[str, typer.Option("--family", help="clear | rain | rain-tunnel | heavy-rain | intersections | kitti")],
+    family: Annotated[str, typer.Option(
+        "--family", help="clear | rain | rain-tunnel | heavy-rain | intersections | kidnapped | kitti")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Family file to write (TOML).")],
     maps: Annotated[Optional[list[str]], typer.Option("--maps", help="Maps (built-in names or OSM paths), repeatable.")] = None,
     seeds: Annotated[Optional[int], typer.Option("--seeds", help="Seeds 1..N.", min=1)] = None,

@@ -50,28 +50,39 @@ def _online_arrays(res: FusionResult):
     return res.t_s[ok], xyz, yaw, ok
 
 
+def online_error_along(res: FusionResult, truth: Truth) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The online estimate's frames against the truth: (time s, distance the truth has driven m, horizontal
+    error m), one entry per estimated frame."""
+    t, xyz, _, _ = _online_arrays(res)
+    ia, ib = associate(t, truth.t_s)
+    driven = cumulative_length(np.column_stack([truth.x_m, truth.y_m]))
+    return t[ia], driven[ib], np.hypot(xyz[ia, 0] - truth.x_m[ib], xyz[ia, 1] - truth.y_m[ib])
+
+
+def kidnap_from_m(truth: Truth, kidnap) -> float:
+    """The distance the truth has driven at a kidnap (where ``relocalisation_m`` counts from)."""
+    driven = cumulative_length(np.column_stack([truth.x_m, truth.y_m]))
+    k = int(np.searchsorted(truth.t_s, kidnap.t_s - 1e-9))
+    return float(driven[min(k, len(driven) - 1)])
+
+
 def _kidnap_metrics(res: FusionResult, truth: Truth, kidnap) -> dict:
     """``relocalised`` and ``relocalisation_m`` of a kidnapped drive (issue 17; null without a kidnap): the
     distance driven from the kidnap until Map-Fusion's online error stays under 10 m for the next 100 m."""
     if kidnap is None:
         return {"relocalised": None, "relocalisation_m": None}
-    t, xyz, _, _ = _online_arrays(res)
-    ia, ib = associate(t, truth.t_s)
-    driven = cumulative_length(np.column_stack([truth.x_m, truth.y_m]))
-    err = np.hypot(xyz[ia, 0] - truth.x_m[ib], xyz[ia, 1] - truth.y_m[ib])
-    k = int(np.searchsorted(truth.t_s, kidnap.t_s - 1e-9))
-    from_m = float(driven[min(k, len(driven) - 1)])
-    r = relocalisation_m(driven[ib], err, from_m)
-    after = err[driven[ib] >= from_m + r] if r is not None else np.empty(0)
+    t_est, driven_m, err = online_error_along(res, truth)
+    from_m = kidnap_from_m(truth, kidnap)
+    r = relocalisation_m(driven_m, err, from_m)
+    after = err[driven_m >= from_m + r] if r is not None else np.empty(0)
     # a re-anchoring more than 25 m from the truth is a wrong convergence: how far it stayed wrong
-    t_est = t[ia]
     wrong_m = []
     for t_r, _ in res.engine.relocalised_at:
         i = int(np.searchsorted(t_est, t_r - 1e-9))
         if i < len(err) and err[i] > 25.0:
             back = np.flatnonzero(err[i:] <= 25.0)
             end = i + int(back[0]) if back.size else len(err) - 1
-            wrong_m.append(float(driven[ib][end] - driven[ib][i]))
+            wrong_m.append(float(driven_m[end] - driven_m[i]))
     return {"relocalised": r is not None, "relocalisation_m": r, "kidnap": kidnap.kind,
             "kidnap_distance_m": kidnap.distance_m, "kidnap_heading_deg": math.degrees(kidnap.heading_rad),
             "online_mean_after_relocalisation_m": float(np.mean(after)) if after.size else None,

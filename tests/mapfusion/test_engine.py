@@ -445,3 +445,60 @@ def test_a_drive_whose_fixes_circled_a_block_is_tracked_not_left_unplaced():
             err.append(math.hypot(p.x() - x[k], p.y() - y[k]))
     assert eng.initialised_at is not None and eng.initialised_at < 40.0 + 2.0 * FusionConfig().init_stall_s
     assert np.mean(err) < 3.0 and err[-1] < 5.0, (np.mean(err), err[-1])
+
+
+# ----------------------------------------------------------------------------- a pose known from elsewhere
+def _perfect(grid):
+    truth = synthetic_truth("random", n=2000, speed_mps=10.0, seed=3)
+    truth.x_m += 100.0
+    truth.y_m += 100.0
+    cfg = FusionConfig(use_map=False, odometry_sigma_after_init_m=1e-4, odometry_sigma_before_init_m=1e-3,
+                       odometry_rot_sigma_deg=1e-4, odometry_sigma_per_m=0.0, odometry_rot_sigma_deg_per_m=0.0)
+    return truth, MapFusion(grid, cfg)
+
+
+@settings(max_examples=6, deadline=None)
+@given(dx=st.floats(-200.0, 200.0), dy=st.floats(-200.0, 200.0), dyaw=st.floats(-math.pi, math.pi))
+def test_reanchor_at_carries_the_estimate_on_from_the_given_pose(grid, dx, dy, dyaw):
+    """Perfect odometry, GPS for 150 s, then re-anchored at 160 s on the true pose moved by (dx, dy) and turned
+    by dyaw: every later estimate is the truth moved by that same rigid motion (the odometry is carried on
+    from the given pose, nothing of the old anchor pulls it back)."""
+    truth, eng = _perfect(grid)
+    T = _poses(truth)
+    gt, gxy = _gps(truth, sigma=0.01)
+    k0 = 1600
+    lat, lon = grid.projection.to_geo(gxy[:, 0], gxy[:, 1])
+    gi = 0
+    for k in range(len(truth.t_s)):
+        while gi < len(gt) and gt[gi] <= truth.t_s[k] + 1e-9:
+            eng.add_gps(float(gt[gi]), float(lat[gi]), float(lon[gi]), None, 0.01)
+            gi += 1
+        eng.add_odometry(float(truth.t_s[k]), np.eye(4) if k == 0 else np.linalg.inv(T[k - 1]) @ T[k])
+        if k == k0:
+            eng.reanchor_at(truth.x_m[k] + dx, truth.y_m[k] + dy, truth.yaw_rad[k] + dyaw, 0.01, 1e-4)
+    eng.finish()
+    _, xy, ok = _online_xy(eng)
+    c, s = math.cos(dyaw), math.sin(dyaw)
+    px, py = truth.x_m[k0], truth.y_m[k0]
+    after = np.arange(k0 + 1, len(truth.t_s))
+    assert ok[after].all()
+    ex = px + dx + c * (truth.x_m[after] - px) - s * (truth.y_m[after] - py)
+    ey = py + dy + s * (truth.x_m[after] - px) + c * (truth.y_m[after] - py)
+    err = np.hypot(xy[after, 0] - ex, xy[after, 1] - ey)
+    assert err.max() < 0.1, err.max()
+
+
+def test_reanchor_at_refuses_an_engine_not_started_and_unusable_poses(grid):
+    eng = MapFusion(grid, FusionConfig())
+    eng.add_odometry(0.0, np.eye(4))
+    with pytest.raises(EngineError, match="not initialised"):
+        eng.reanchor_at(0.0, 0.0, 0.0)
+    truth, eng = _perfect(grid)
+    gt, gxy = _gps(truth, sigma=0.01)
+    _feed(eng, grid, truth.t_s[:1700], _poses(truth)[:1700], gt, gxy, sigma=0.01)
+    assert eng.initialised
+    eng.reanchor_at(truth.x_m[1699], truth.y_m[1699], truth.yaw_rad[1699])  # (after finish too: a pose to re-anchor)
+    for bad in ((math.nan, 0.0, 0.0, 0.5, 0.01), (0.0, 0.0, math.inf, 0.5, 0.01), (0.0, 0.0, 0.0, 0.0, 0.01),
+                (0.0, 0.0, 0.0, 0.5, -1.0)):
+        with pytest.raises(EngineError, match="finite"):
+            eng.reanchor_at(*bad)
