@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -123,6 +125,10 @@ class EngineBench:
     # work, so `growth` over the whole drive also measures the switch from one to the other (nan: too short)
     after_gps_first_10pct_us: float = float("nan")
     after_gps_last_10pct_us: float = float("nan")
+    # of a frame's time, on average over the drive: GTSAM's updates (the backend's update calls) and the road
+    # fixes' particles (their step and answer): what no Python-side work in the engine can remove
+    gtsam_update_us_per_frame: float = float("nan")
+    road_fixes_us_per_frame: float = float("nan")
 
     @property
     def growth(self) -> float:
@@ -164,6 +170,25 @@ def route_walk(road: RoadMap, length_m: float, seed: int = 0) -> np.ndarray:
 GPS_S = 120.0
 
 
+@contextmanager
+def _timed(cls: type, method: str, spent_s: list[float]) -> Iterator[None]:
+    """While open, every call of ``cls.method`` adds its wall time to ``spent_s[0]`` (about 0.3 µs a call)."""
+    original = getattr(cls, method)
+
+    def timed(self, *args, **kwargs):
+        t0 = time.perf_counter()
+        try:
+            return original(self, *args, **kwargs)
+        finally:
+            spent_s[0] += time.perf_counter() - t0
+
+    setattr(cls, method, timed)
+    try:
+        yield
+    finally:
+        setattr(cls, method, original)
+
+
 def bench_engine(road: RoadMap, duration_s: float = 3600.0, speed_mps: float = 10.0, rate_hz: float = 10.0,
                  lateral_drift_m_per_m: float = 0.01, seed: int = 0, config=None) -> EngineBench:
     """The engine with map priors and the fixed-lag backend on a synthetic drive of ``duration_s``
@@ -174,6 +199,8 @@ def bench_engine(road: RoadMap, duration_s: float = 3600.0, speed_mps: float = 1
     from mapfusion.config import FusionConfig
     from mapfusion.engine import MapFusion
     from mapfusion.geometry import resample
+    from mapfusion.smoother import _Backend
+    from mapfusion.tracking import RoadFixes
 
     path = route_walk(road, duration_s * speed_mps + 100.0, seed)
     pts, _ = resample(path, speed_mps / rate_hz)
@@ -188,17 +215,20 @@ def bench_engine(road: RoadMap, duration_s: float = 3600.0, speed_mps: float = 1
     times = np.empty(n)
     prev = gtsam.Pose3(gtsam.Rot3.Yaw(yaw[0]), gtsam.Point3(pts[0, 0], pts[0, 1], 0.0))
     clock = time.perf_counter
-    for k in range(n):
-        cur = gtsam.Pose3(gtsam.Rot3.Yaw(yaw[k]), gtsam.Point3(pts[k, 0], pts[k, 1], 0.0))
-        rel = prev.between(cur).matrix()
-        if t[k] > GPS_S:  # after the GPS: a drift from the start is taken for a heading offset
-            rel[1, 3] += lateral_drift_m_per_m * rel[0, 3]
-        prev = cur
-        t0 = clock()
-        if k % int(rate_hz) == 0 and t[k] <= GPS_S:
-            eng.add_gps(float(t[k]), float(lat[k]) + rng.normal(0, 1e-5), float(lon[k]) + rng.normal(0, 2e-5), None, 2.0)
-        eng.add_odometry(float(t[k]), rel)
-        times[k] = clock() - t0
+    update_s, particles_s = [0.0], [0.0]
+    with _timed(_Backend, "update", update_s), _timed(RoadFixes, "step", particles_s):
+        for k in range(n):
+            cur = gtsam.Pose3(gtsam.Rot3.Yaw(yaw[k]), gtsam.Point3(pts[k, 0], pts[k, 1], 0.0))
+            rel = prev.between(cur).matrix()
+            if t[k] > GPS_S:  # after the GPS: a drift from the start is taken for a heading offset
+                rel[1, 3] += lateral_drift_m_per_m * rel[0, 3]
+            prev = cur
+            t0 = clock()
+            if k % int(rate_hz) == 0 and t[k] <= GPS_S:
+                eng.add_gps(float(t[k]), float(lat[k]) + rng.normal(0, 1e-5), float(lon[k]) + rng.normal(0, 2e-5),
+                            None, 2.0)
+            eng.add_odometry(float(t[k]), rel)
+            times[k] = clock() - t0
     eng.finish()
     start = int(np.searchsorted(t, (eng.initialised_at or 0.0) + 1.0))
     run = times[start:]
@@ -210,7 +240,8 @@ def bench_engine(road: RoadMap, duration_s: float = 3600.0, speed_mps: float = 1
     return EngineBench(map=road.source, frames=n, duration_s=float(t[-1]), map_priors=eng.counters.map_priors,
                        frames_per_s=float(n / times.sum()), first_10pct_us=float(run[:tenth].mean() * 1e6),
                        last_10pct_us=float(run[-tenth:].mean() * 1e6), after_gps_first_10pct_us=first_after,
-                       after_gps_last_10pct_us=last_after)
+                       after_gps_last_10pct_us=last_after, gtsam_update_us_per_frame=update_s[0] / n * 1e6,
+                       road_fixes_us_per_frame=particles_s[0] / n * 1e6)
 
 @dataclass(frozen=True)
 class SimBench:
@@ -308,6 +339,19 @@ def bench_relocalise(road: RoadMap, radius_m: float = 2000.0, length_m: float = 
             "compute_s": spent, "realtime_factor": drive_s / spent}
 
 
+def _floor(rounds: list, which: int) -> dict:
+    """The engine line's floor: the time a frame spends in GTSAM's updates and in the road fixes' particles,
+    and the most ``ratio_to_bare`` could be were every other part of the frame free (the bare chain's time a
+    frame over those two); per round, and their medians under ``summary``."""
+    upd = [r[which].gtsam_update_us_per_frame for r in rounds]
+    par = [r[which].road_fixes_us_per_frame for r in rounds]
+    bound = [1e6 / r[0] / (u + p) for r, u, p in zip(rounds, upd, par)]
+    return {"gtsam_update_us_per_frame": upd, "road_fixes_us_per_frame": par, "ratio_to_bare_at_most": bound,
+            "summary": {"gtsam_update_us_per_frame": float(np.median(upd)),
+                        "road_fixes_us_per_frame": float(np.median(par)),
+                        "ratio_to_bare_at_most": float(np.median(bound))}}
+
+
 def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (10.0, 15.0), repeats: int = 3):
     """``mapfusion bench``: one dict per benchmark (``benchmark`` names it), each with the anchor
     measured in the same run and the ratio to it. The engine and its anchor run ``repeats`` times,
@@ -338,17 +382,19 @@ def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (1
     eng_ratio = [e / b for e, b in zip(eng_fps, bare_fps)]
     hmm_ratio = [h / b for h, b in zip(hmm_fps, bare_fps)]
     eng, hmm = rounds[0][1], rounds[0][2]
+    eng_floor, hmm_floor = _floor(rounds, 1), _floor(rounds, 2)
     yield {"benchmark": "engine", "frames": eng.frames, "map_priors": eng.map_priors, "frames_per_s": med(eng_fps),
            "growth": med([e.growth for _, e, _ in rounds]),
            "growth_after_gps": med([e.growth_after_gps for _, e, _ in rounds]),
            "bare_chain_frames_per_s": med(bare_fps),
-           "ratio_to_bare": med(eng_ratio), "rounds": {"frames_per_s": eng_fps, "bare_chain_frames_per_s": bare_fps,
-                                                      "ratio_to_bare": eng_ratio}}
+           "ratio_to_bare": med(eng_ratio), **eng_floor.pop("summary"),
+           "rounds": {"frames_per_s": eng_fps, "bare_chain_frames_per_s": bare_fps, "ratio_to_bare": eng_ratio,
+                      **eng_floor}}
     yield {"benchmark": "engine_hmm", "frames": hmm.frames, "map_priors": hmm.map_priors, "frames_per_s": med(hmm_fps),
            "growth": med([h.growth for _, _, h in rounds]),
            "growth_after_gps": med([h.growth_after_gps for _, _, h in rounds]), "ratio_to_bare": med(hmm_ratio),
-           "ratio_to_single_frame": med([h / e for h, e in zip(hmm_fps, eng_fps)]),
-           "rounds": {"frames_per_s": hmm_fps, "ratio_to_bare": hmm_ratio}}
+           "ratio_to_single_frame": med([h / e for h, e in zip(hmm_fps, eng_fps)]), **hmm_floor.pop("summary"),
+           "rounds": {"frames_per_s": hmm_fps, "ratio_to_bare": hmm_ratio, **hmm_floor}}
     yield bench_relocalise(road)
     singles, batches, kds, settled = [], [], [], 0.0
     for _ in range(max(1, repeats)):

@@ -1039,7 +1039,8 @@ def bench(
                                          "benchmarks, each beside its anchor; medians are reported.")] = 3,
 ) -> None:
     """Throughput of the road-map build, the engine (with map priors, against a bare GTSAM chain measured
-    in the same run: ratio_to_bare) and the matcher (against a k-d tree ball query: *_ratio_to_kdtree)."""
+    in the same run: ratio_to_bare; ratio_to_bare_at_most: the most it could be with only GTSAM's updates and
+    the road fixes' particles left in a frame) and the matcher (against a k-d tree ball query: *_ratio_to_kdtree)."""
     from .bench import run_benchmarks
 
     try:

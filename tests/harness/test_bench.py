@@ -36,6 +36,17 @@ def test_bench_lines_carry_their_anchors_and_ratios(tmp_path, monkeypatch):
     for fps, bare, ratio in zip(h["frames_per_s"], r["bare_chain_frames_per_s"], h["ratio_to_bare"]):
         assert math.isclose(ratio, fps / bare)
     assert math.isclose(hmm["ratio_to_bare"], _median(h["ratio_to_bare"]))
+    # the floor: GTSAM's updates and the road fixes' particles are part of every engine frame's time, so no round's
+    # ratio exceeds the bound they leave (a timing that missed them would leave an infinite or a lower bound)
+    for line in (eng, hmm):
+        rr = line["rounds"]
+        assert all(u > 0 for u in rr["gtsam_update_us_per_frame"]) and all(p > 0 for p in rr["road_fixes_us_per_frame"])
+        for ratio, bound in zip(rr["ratio_to_bare"], rr["ratio_to_bare_at_most"]):
+            assert ratio <= bound
+        for bare, u, p, bound in zip(r["bare_chain_frames_per_s"], rr["gtsam_update_us_per_frame"],
+                                     rr["road_fixes_us_per_frame"], rr["ratio_to_bare_at_most"]):
+            assert math.isclose(bound, 1e6 / bare / (u + p))
+        assert math.isclose(line["ratio_to_bare_at_most"], _median(rr["ratio_to_bare_at_most"]))
     m = rows["matcher"]
     ratios = [s / k for s, k in zip(m["rounds"]["single_matches_per_s"], m["rounds"]["kdtree_queries_per_s"])]
     assert math.isclose(m["single_ratio_to_kdtree"], _median(ratios))
