@@ -115,7 +115,7 @@ def cold_start(drive_dir: str | Path, offset_m: float = 300.0, radius_m: float =
     """Simulate ``odometry`` in ``weather`` (``seed``) on a KITTI drive's truth and fuse it with no GPS from a
     start region of ``radius_m`` centred ``offset_m`` from the true start (bearing drawn from numpy seed 1, as
     issue 17's check). ``offset_m`` 0 and a few metres of radius: the start known."""
-    from mapfusion.harness.pipeline import motion_of, simulate_scenario
+    from mapfusion.harness.pipeline import motion_of, online_error_along, simulate_scenario
     from mapfusion.replay import fuse
 
     from sim.scenario import scenario_from_dict
@@ -132,11 +132,8 @@ def cold_start(drive_dir: str | Path, offset_m: float = 300.0, radius_m: float =
                                          tr.y_m[0] + offset_m * math.sin(bearing))
     res = fuse(sim.road, odo.t_s, odo.poses, None, config or FusionConfig(), motion=motion_of(sim.sensors),
                start_region=(float(lat), float(lon), float(radius_m)))
-    ok = [i for i, p in enumerate(res.online) if p is not None]
-    fi = odo.frame_index[ok]
-    t = res.t_s[ok] - odo.t_s[0]
-    err = np.hypot(np.array([res.online[i].x() for i in ok]) - tr.x_m[fi],
-                   np.array([res.online[i].y() for i in ok]) - tr.y_m[fi])
+    t, _, err = online_error_along(res, tr)
+    t = t - odo.t_s[0]
     found = res.engine.initialised_at
     if found is None or not len(t):
         return ColdStart(drive.name, None, math.inf, math.nan, math.nan)
