@@ -216,6 +216,9 @@ class Track:
         self.raw: History[gtsam.Pose3] = History()  # raw absolute odometry poses (levelled once level is set)
         self.rel: History[gtsam.Pose3] = History()  # raw relative motion into each frame (identity for the first)
         self.online: History[gtsam.Pose3 | None] = History()
+        # each frame's step as plain floats (x, y, yaw) and whether it follows its previous frame within
+        # NONHOLONOMIC_MAX_S, for _sliding's look back over the last frames (None without odometry_nonholonomic)
+        self._slides: History[tuple[float, float, float, bool] | None] = History()
         self.level_rot: gtsam.Pose3 | None = None
         self._odo_abs = gtsam.Pose3()
         self._planar_memo: tuple[gtsam.Pose3, tuple[float, float, float]] | None = None
@@ -231,11 +234,13 @@ class Track:
         elif self.flat:
             rel = flatten(rel)
         self._odo_abs = self._odo_abs if first else self._odo_abs.compose(rel)
-        if self.nonholonomic and not first and t - self.t[-1] <= NONHOLONOMIC_MAX_S:
+        short = self.nonholonomic and not first and t - self.t[-1] <= NONHOLONOMIC_MAX_S
+        if short:
             self.lever_arm.add(rel)
         self.t.append(t)
         self.raw.append(self.level_rot.compose(self._odo_abs) if self.level_rot is not None else self._odo_abs)
         self.rel.append(gtsam.Pose3() if first else rel)
+        self._slides.append(_step_floats(self.rel[-1], short) if self.nonholonomic else None)
         self.online.append(None)
         return self._odo_abs.translation()
 
@@ -247,6 +252,9 @@ class Track:
         k0 = min(steps)
         for k, rel in steps.items():
             self.rel[k] = flatten(rel) if self.flat else rel
+            if self.nonholonomic:
+                self._slides[k] = _step_floats(self.rel[k], k > self.first and self.t[k] - self.t[k - 1] <=
+                                               NONHOLONOMIC_MAX_S)
         for k in range(max(k0, self.first + 1), len(self)):
             self.raw[k] = self.raw[k - 1].compose(self.rel[k])
         unlevel = self.level_rot.inverse() if self.level_rot is not None else gtsam.Pose3()
@@ -260,7 +268,7 @@ class Track:
 
     def drop_before(self, k: int) -> None:
         """Forget the frames before k (their times, poses and estimates)."""
-        for h in (self.t, self.raw, self.rel, self.online):
+        for h in (self.t, self.raw, self.rel, self.online, self._slides):
             h.drop_before(k)
 
     def frame_at(self, t: float) -> int:
@@ -339,11 +347,12 @@ class Track:
             return True
         lever = self.lever_arm.lever(1.0)
         across = along = turn = 0.0
+        slides = self._slides
         for j in range(max(self.first + 1, k - SLIDE_FRAMES + 1), k + 1):
-            if self.t[j] - self.t[j - 1] <= NONHOLONOMIC_MAX_S:
-                rel = self.rel[j]
-                a, b = slide_of(rel, lever)
-                across, along, turn = across + a, along + b, turn + abs(rel.rotation().yaw())
+            x, y, yaw, short = slides[j]  # type: ignore[misc]  # (held for every frame when nonholonomic)
+            if short:
+                a, b = _slide(x, y, yaw, lever)
+                across, along, turn = across + a, along + b, turn + abs(yaw)
         return along * scale >= SLIDE_MIN_M and turn <= SLIDE_MAX_TURN_RAD and \
             abs(across) > math.tan(self.slip_rad) * along
 
@@ -380,8 +389,18 @@ def _swing(yaw_rad: float, lever_m: float) -> tuple[float, float]:
 def slide_of(step: gtsam.Pose3, lever_m: float = 0.0) -> tuple[float, float]:
     """The step's motion beyond the lever's swing, across and along its mean heading: (sideways, along) (its own
     units; along is ≥ 0, a backward step's taken the other way round)."""
-    x, y, _ = step.translation()
-    yaw = step.rotation().yaw()
+    x, y, yaw, _ = _step_floats(step, False)
+    return _slide(x, y, yaw, lever_m)
+
+
+def _step_floats(step: gtsam.Pose3, short: bool) -> tuple[float, float, float, bool]:
+    """(x, y, yaw) of a step as plain floats, with ``short`` carried along (the engine reads each frame's once)."""
+    x, y, _ = step.translation().tolist()
+    return x, y, step.rotation().yaw(), short
+
+
+def _slide(x: float, y: float, yaw: float, lever_m: float) -> tuple[float, float]:
+    """:func:`slide_of` of a step given as (x, y, yaw)."""
     sx, sy = _swing(yaw, lever_m)
     ax, ay = x - sx, y - sy
     c, s = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
