@@ -216,9 +216,9 @@ class Track:
         self.raw: History[gtsam.Pose3] = History()  # raw absolute odometry poses (levelled once level is set)
         self.rel: History[gtsam.Pose3] = History()  # raw relative motion into each frame (identity for the first)
         self.online: History[gtsam.Pose3 | None] = History()
-        # each frame's step as plain floats (x, y, yaw) and whether it follows its previous frame within
-        # NONHOLONOMIC_MAX_S, for _sliding's look back over the last frames (None without odometry_nonholonomic)
-        self._slides: History[tuple[float, float, float, bool] | None] = History()
+        # each frame's step as plain floats, for _sliding's look back over the last frames (None without
+        # odometry_nonholonomic)
+        self._slides: History[StepFloats | None] = History()
         self.level_rot: gtsam.Pose3 | None = None
         self._odo_abs = gtsam.Pose3()
         self._planar_memo: tuple[gtsam.Pose3, tuple[float, float, float]] | None = None
@@ -349,10 +349,10 @@ class Track:
         across = along = turn = 0.0
         slides = self._slides
         for j in range(max(self.first + 1, k - SLIDE_FRAMES + 1), k + 1):
-            x, y, yaw, short = slides[j]  # type: ignore[misc]  # (held for every frame when nonholonomic)
-            if short:
-                a, b = _slide(x, y, yaw, lever)
-                across, along, turn = across + a, along + b, turn + abs(yaw)
+            f = slides[j]
+            if f is not None and f[7]:  # (held for every frame when nonholonomic; f[7]: a short step)
+                a, b = _slide(f, lever)
+                across, along, turn = across + a, along + b, turn + f[2]
         return along * scale >= SLIDE_MIN_M and turn <= SLIDE_MAX_TURN_RAD and \
             abs(across) > math.tan(self.slip_rad) * along
 
@@ -389,21 +389,25 @@ def _swing(yaw_rad: float, lever_m: float) -> tuple[float, float]:
 def slide_of(step: gtsam.Pose3, lever_m: float = 0.0) -> tuple[float, float]:
     """The step's motion beyond the lever's swing, across and along its mean heading: (sideways, along) (its own
     units; along is ≥ 0, a backward step's taken the other way round)."""
-    x, y, yaw, _ = _step_floats(step, False)
-    return _slide(x, y, yaw, lever_m)
+    return _slide(_step_floats(step, False), lever_m)
 
 
-def _step_floats(step: gtsam.Pose3, short: bool) -> tuple[float, float, float, bool]:
-    """(x, y, yaw) of a step as plain floats, with ``short`` carried along (the engine reads each frame's once)."""
+#: A step as plain floats: x, y, |yaw|, cos(yaw) − 1, sin(yaw), cos(yaw / 2), sin(yaw / 2), and whether it follows its
+#: previous frame within NONHOLONOMIC_MAX_S (what :func:`_slide` needs whatever the lever).
+StepFloats = tuple[float, float, float, float, float, float, float, bool]
+
+
+def _step_floats(step: gtsam.Pose3, short: bool) -> StepFloats:
+    """A step's :data:`StepFloats` (the engine reads each frame's once, when it is appended)."""
     x, y, _ = step.translation().tolist()
-    return x, y, step.rotation().yaw(), short
+    yaw = step.rotation().yaw()
+    return x, y, abs(yaw), math.cos(yaw) - 1.0, math.sin(yaw), math.cos(0.5 * yaw), math.sin(0.5 * yaw), short
 
 
-def _slide(x: float, y: float, yaw: float, lever_m: float) -> tuple[float, float]:
-    """:func:`slide_of` of a step given as (x, y, yaw)."""
-    sx, sy = _swing(yaw, lever_m)
-    ax, ay = x - sx, y - sy
-    c, s = math.cos(0.5 * yaw), math.sin(0.5 * yaw)
+def _slide(f: StepFloats, lever_m: float) -> tuple[float, float]:
+    """:func:`slide_of` of a step given as :data:`StepFloats` (:func:`_swing`'s arithmetic, its cosines read)."""
+    x, y, _, cos_m1, sin_yaw, c, s, _ = f
+    ax, ay = x - lever_m * cos_m1, y - lever_m * sin_yaw
     along, across = c * ax + s * ay, -s * ax + c * ay
     return (across, along) if along >= 0.0 else (-across, -along)
 

@@ -336,6 +336,18 @@ def test_a_sustained_slide_is_not_taken_for_motion(seed, slide):
         assert abs(out.y()) < 1e-9 and out.x() == pytest.approx(float(np.hypot(*steps[k].translation()[:2])))
 
 
+@given(seed=st.integers(0, 10_000), slide=st.sampled_from([-0.1, 0.1]), first=st.integers(0, 25))
+def test_restated_steps_are_judged_by_the_slide_test_as_if_appended(seed, slide, first):
+    """The slide test reads each frame's step as it was kept when appended (issue 21): steps restated later
+    (an odometry's re-estimated past) are read as restated — the same decisions as a track built with them, at
+    every frame whose look back holds restated steps only."""
+    track, _ = _track_steps(0.0, seed)
+    built, sliding = _track_steps(slide, seed)
+    track.restate_steps({k: sliding[k] for k in range(first, len(sliding))})
+    for k in range(first + SLIDE_FRAMES, len(track)):
+        assert track.step(k, 1.0).equals(built.step(k, 1.0), 1e-12)
+
+
 @given(lever=st.floats(-3.0, 3.0), seed=st.integers(0, 1000))
 def test_the_lever_arm_is_found_from_the_turns(lever, seed):
     rng = np.random.default_rng(seed)
