@@ -1199,6 +1199,15 @@ class FusionConfig:
                                        "estimate moved than this × the combined σ (the answer's spread, the drift) "
                                        "is not a fix (0: no gate).", min=0.0, max=1000.0,
                                        source="issue 16: never make a drive worse")
+    road_fix_heading_sigma_deg: float = param(
+        0.0, "The particles start weighted by the estimate's heading: a Gaussian of this σ (or 3 × the smoother's "
+        "marginal yaw σ, when larger) in the angle between each particle's heading (its road's, in its direction) "
+        "and the estimate's, above road_fix_heading_floor. Without it a start spreads both ways along every road "
+        "of its region, and on a regular grid the mirrored and turned copies of the path fit the odometry as well as "
+        "the true one for ever; 0: off.", unit="deg", min=0.0, max=180.0, source="issue 21: the bench's grid city")
+    road_fix_heading_floor: float = param(0.01, "With road_fix_heading_sigma_deg: the share of a start's weight a "
+                                          "particle keeps however far its heading lies from the estimate's (an "
+                                          "estimate's heading may be wrong).", min=0.0, max=1.0, source="issue 21")
     curve_fixes: bool = param(False, "While GPS is silent, where the estimate's last curve_fix_path_m turned by "
                               "curve_fix_turn_deg, that stretch is registered on the roads and the shift that puts it "
                               "there enters the graph as a fix: a bend places the vehicle along its road, which the "

@@ -40,7 +40,7 @@ from .association import MapAssociation
 from .config import FusionConfig, StateModel
 from .counters import Counters
 from .curvefix import CurveFixes
-from .relocalise import Located, Region, RoadParticles, Search
+from .relocalise import Guess, Located, Region, RoadParticles, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
 from .track import Alignment, Track, planar_of
@@ -108,11 +108,12 @@ class RoadFixes:
         self._pending = None
 
     def step(self, k: int, t: float, raw_xy_yaw: tuple[float, float, float], scale: float, pred: gtsam.Pose3,
-             sigma_m: float, near_only: bool = False) -> gtsam.NonlinearFactor | None:
+             sigma_m: float, near_only: bool = False, yaw_sigma_rad: float = math.inf) -> gtsam.NonlinearFactor | None:
         """Frame k at time t: the odometry's raw planar pose (its own units and frame), the estimate's scale
         (metres per odometry unit), the predicted pose and its positional σ (m); ``near_only``: no fix farther
-        than ``road_fix_agree_m`` from the estimate (``road_fix_near_only``, ``road_fix_trust_fit``). Returns a fix
-        on frame k, or None."""
+        than ``road_fix_agree_m`` from the estimate (``road_fix_near_only``, ``road_fix_trust_fit``);
+        ``yaw_sigma_rad``: the estimate's marginal yaw σ (for ``road_fix_heading_sigma_deg``). Returns a fix on
+        frame k, or None."""
         cfg = self.cfg
         self._near_only = near_only
         silent = t - self.last_gps_t >= cfg.road_fix_after_gps_s
@@ -123,7 +124,7 @@ class RoadFixes:
             self._ref, self._ref_pending = (self._ref[0], self._ref[1], pred.x(), pred.y()), False
         if self.particles is None:
             if self._steady(x, y, yaw, scale):
-                self._start(x, y, yaw, scale, pred, sigma_m)
+                self._start(x, y, yaw, scale, pred, sigma_m, yaw_sigma_rad)
             return None
         if len(self.particles) == 0:  # no road in the region: start again from the next frame's estimate
             self.drop()
@@ -223,7 +224,8 @@ class RoadFixes:
         self._pending = (x, y, yaw)
         return abs(math.remainder(yaw - pyaw, 2.0 * math.pi)) <= math.radians(self.cfg.road_fix_offset_max_deg)
 
-    def _start(self, x: float, y: float, yaw: float, scale: float, pred: gtsam.Pose3, sigma_m: float) -> None:
+    def _start(self, x: float, y: float, yaw: float, scale: float, pred: gtsam.Pose3, sigma_m: float,
+               yaw_sigma_rad: float = math.inf) -> None:
         cfg = self.cfg
         if self._filter is None:  # (one filter, started afresh each time: its exits table is built once)
             self._filter = RoadParticles(self.road, particle_config(cfg), cfg.reloc_seed)
@@ -233,7 +235,12 @@ class RoadFixes:
         # drifted since the last fix (a restart after a long stretch without one)
         radius = min(max(cfg.road_fix_radius_m, 3.0 * sigma_m, 3.0 * cfg.road_fix_drift * self._unfixed_m),
                      max(cfg.road_fix_radius_max_m, cfg.road_fix_radius_m))
-        self.particles.start(Region(pred.x(), pred.y(), radius), yaw, scale_range=(scale / f, scale * f))
+        guess = None
+        if cfg.road_fix_heading_sigma_deg > 0:  # (the place anywhere in the region: only the heading is weighed)
+            guess = Guess(pred.x(), pred.y(), math.inf, pred.rotation().yaw(),
+                          max(math.radians(cfg.road_fix_heading_sigma_deg), 3.0 * yaw_sigma_rad),
+                          cfg.road_fix_heading_floor)
+        self.particles.start(Region(pred.x(), pred.y(), radius), yaw, scale_range=(scale / f, scale * f), guess=guess)
         self.starts += 1
         self._anchor = self._last_xy = (x, y)
         self._moved = self._since_fix_m = self._unsure_m = self._since_ref_m = self._held_m = 0.0
@@ -252,6 +259,7 @@ class RoadFixing:
     _road_fixes: RoadFixes
     _curve_fixes: CurveFixes
     _pos_sigma: float
+    _yaw_sigma: float
     _smoother: Smoother | None
     _search: Search
     _association: MapAssociation
@@ -272,7 +280,7 @@ class RoadFixing:
         near_only = cfg.map_relocalisation and (cfg.road_fix_near_only or cfg.road_fix_trust_fit
                                                 and self._association.kept_to_roads())
         fix = rf.step(k, self.track.t[k], planar_of(self.track.raw[k]), self.alignment.scale, pred, self._pos_sigma,
-                      near_only=near_only)
+                      near_only=near_only, yaw_sigma_rad=self._yaw_sigma)
         if fix is None:
             return False
         self._smoother.add(fix)

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from mapfusion import FusionConfig, MapFusion, RoadMap
 from mapfusion.counters import Counters
+from mapfusion.relocalise import Located
 from mapfusion.tracking import RoadFixes
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
@@ -146,7 +147,7 @@ def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road
     estimate's place out: their posterior mass near the estimate (outside the answer's own disc) is under
     road_fix_rival_mass (0: always a fix). And never when the step says ``near_only`` (road_fix_near_only, or
     road_fix_trust_fit while the estimate's recent path kept to the roads)."""
-    from mapfusion.relocalise import Located, RoadParticles
+    from mapfusion.relocalise import RoadParticles
 
     cfg = dataclasses.replace(ON, road_fix_rival_mass=threshold)
     rng = np.random.default_rng(seed)
@@ -286,3 +287,93 @@ def test_the_road_fixes_are_kept_near_only_with_a_search_to_move_the_estimate_fa
     eng, _, err = _run(road, cfg, x, y, ox, oy, oyaw, 400)
     assert err < 15.0, err
     assert eng._road_fixes._near_only == (relocalise and (near or trust))
+
+
+@pytest.fixture(scope="module")
+def grid_city(tmp_path_factory):
+    """A regular 3 km × 3 km grid of 150 m blocks: turned by 180° (or 90°), a path over it fits the same roads."""
+    from mapfusion import synthetic
+    return RoadMap.from_osm(synthetic.write("city", tmp_path_factory.mktemp("city") / "city.osm", width_km=3.0,
+                                            height_km=3.0))
+
+
+def _staircase(start_m: float, quarter_turns: int, length_m: float = 1500.0):
+    """A drive up a staircase of the 150 m grid from the 3 km city's centre (the map frame's origin): a block one
+    way, a block turned left, a block back the first way, ... (one metre a frame), starting ``start_m`` into its
+    first block, the whole turned by ``quarter_turns`` × 90°: (x, y, yaw)."""
+    corners = [(0.0, 0.0)]
+    for i in range(int(length_m // 150.0) + 2):
+        cx, cy = corners[-1]
+        corners.append((cx + 150.0, cy) if i % 2 == 0 else (cx, cy + 150.0))
+    c = np.array(corners)
+    s = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(c, axis=0).T))))
+    u = np.arange(start_m, start_m + length_m, 1.0)
+    x, y = np.interp(u, s, c[:, 0]), np.interp(u, s, c[:, 1])
+    turn = quarter_turns * math.pi / 2.0
+    x, y = math.cos(turn) * x - math.sin(turn) * y, math.sin(turn) * x + math.cos(turn) * y
+    return x, y, np.arctan2(np.gradient(y), np.gradient(x))
+
+
+def _confident_share(road, cfg, x, y, yaw, after_m=400.0):
+    """The road fixes fed an exact odometry of a drive, the estimate the truth (its yaw σ 1°): (share of the
+    fixes' turns after ``after_m`` at which the particles were confident, starts, particles at the end)."""
+    ox, oy, oyaw = drifting_odometry(x, y, yaw, 0, heading_rad=0.4)
+    fixes = RoadFixes(road, cfg, Counters())
+    turns = confident = 0
+    for k in range(len(x)):
+        pred = gtsam.Pose3(gtsam.Rot3.Yaw(float(yaw[k])), gtsam.Point3(float(x[k]), float(y[k]), 0.0))
+        fixes.last = unset = Located(0.0, 0.0, 0.0, 0.0, 0, 1, 0.0, 0.0, 0.0, 0.0, 0.0)  # (a fix's turn sets it)
+        fixes.step(k, 0.1 * k + 10.0, (float(ox[k]), float(oy[k]), float(oyaw[k])), 1.0, pred, 1.0,
+                   yaw_sigma_rad=math.radians(1.0))
+        if k >= after_m and fixes.last is not unset:
+            turns += 1
+            confident += fixes.last is not None
+    return confident / max(turns, 1), fixes.starts, len(fixes.particles) if fixes.particles is not None else 0
+
+
+@pytest.mark.parametrize("start_m, quarter_turns", [(0.0, 0), (75.0, 1), (149.0, 2), (30.0, 3)])
+def test_on_a_regular_grid_the_estimates_heading_lets_the_particles_settle(grid_city, start_m, quarter_turns):
+    """Issue 21: a start spreads both ways along every road of its region, and on a regular grid the path turned
+    by 180° about a block's centre (or by 90° about a junction) fits the odometry as well as the true one for
+    ever. Where such a copy lies within the start's region (50 m: not from every place in a block, and the
+    particles' resampling may lose one copy by chance, so four starts where none was lost), over a drive that
+    turns at every junction the particles never agree on one place, start again every road_fix_restart_m over a
+    wider region, and cost the most they may. Weighted by the estimate's heading
+    (road_fix_heading_sigma_deg) they agree after the first turns, settle to a few and never start again."""
+    drive = _staircase(start_m, quarter_turns)
+    share_on, starts_on, n_on = _confident_share(grid_city, dataclasses.replace(ON, road_fix_heading_sigma_deg=20.0),
+                                                 *drive)
+    share_off, starts_off, n_off = _confident_share(grid_city, dataclasses.replace(ON, road_fix_heading_sigma_deg=0.0),
+                                                    *drive)
+    assert share_on >= 0.9 and starts_on == 1 and n_on <= 2000, (share_on, starts_on, n_on)
+    assert share_off <= 0.1 and starts_off >= 3 and n_off >= 5 * n_on, (share_off, starts_off, n_off)
+
+
+@settings(max_examples=25, deadline=None)
+@given(frac=st.floats(0.0, 1.0), turn=st.floats(-math.pi, math.pi), sigma_deg=st.floats(5.0, 60.0),
+       floor=st.floats(0.0, 0.5), yaw_sigma_deg=st.floats(0.0, 10.0))
+def test_a_start_weighs_each_particle_by_its_heading_against_the_estimates(road, frac, turn, sigma_deg, floor,
+                                                                           yaw_sigma_deg):
+    """Every particle's start weight falls with the angle between its heading and the estimate's, over a
+    σ of road_fix_heading_sigma_deg (or 3 × the marginal yaw σ): any particle within 1 σ outweighs any
+    beyond 3 σ by at least the Gaussian's ratio under the floor; without the weighting all weigh the same."""
+    i = int(frac * (len(road) - 1))
+    heading = float(road.yaw_rad[i]) + turn
+    pred = gtsam.Pose3(gtsam.Rot3.Yaw(heading), gtsam.Point3(float(road.xy_m[i, 0]), float(road.xy_m[i, 1]), 0.0))
+    for deg in (0.0, sigma_deg):
+        cfg = dataclasses.replace(ON, road_fix_heading_sigma_deg=deg, road_fix_heading_floor=floor)
+        fixes = RoadFixes(road, cfg, Counters())
+        fixes.step(0, 10.0, (0.0, 0.0, 0.0), 1.0, pred, 1.0, yaw_sigma_rad=math.radians(yaw_sigma_deg))
+        p = fixes.particles
+        assert p is not None and len(p) > 0
+        w = np.exp(p.logw)
+        assert w.sum() == pytest.approx(1.0)
+        if deg == 0.0:
+            assert np.ptp(p.logw) < 1e-12
+            continue
+        sigma = max(math.radians(deg), 3.0 * math.radians(yaw_sigma_deg))
+        a = np.abs(np.remainder(p._heading(p.edge, p.along, p.direction) - heading + math.pi, 2 * math.pi) - math.pi)
+        near, far = w[a <= sigma], w[a >= 3.0 * sigma]
+        if near.size and far.size:
+            ratio = (floor + (1.0 - floor) * math.exp(-0.5)) / (floor + (1.0 - floor) * math.exp(-4.5))
+            assert near.min() >= ratio * far.max() * (1.0 - 1e-9)
