@@ -350,11 +350,13 @@ def _floor(rounds: list, which: int) -> tuple[dict, dict]:
     return per_round, {k: float(np.median(v)) for k, v in per_round.items()}
 
 
-def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (10.0, 15.0), repeats: int = 3):
+def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (10.0, 15.0), repeats: int = 3,
+                   config=None):
     """``mapfusion bench``: one dict per benchmark (``benchmark`` names it), each with the anchor
     measured in the same run and the ratio to it. The engine and its anchor run ``repeats`` times,
     interleaved (a shared machine's load drifts between runs; neighbours see the same load): the
-    figures are medians, each ratio the median of the rounds' ratios."""
+    figures are medians, each ratio the median of the rounds' ratios. ``config``: the engine's
+    FusionConfig (default: the defaults; the road-hypotheses line adds ``road_tracking = "hmm"``)."""
     from mapfusion import synthetic
     from mapfusion.config import FusionConfig, RoadTracking
 
@@ -366,11 +368,14 @@ def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (1
         build_s = time.perf_counter() - t0
     yield {"benchmark": "roadmap_build", "map": f"synthetic city {city_km[0]:g} × {city_km[1]:g} km",
            "waypoints": len(road), "build_s": build_s}
-    hmm_cfg = FusionConfig(road_tracking=RoadTracking.hmm)
+    import dataclasses
+
+    cfg = config or FusionConfig()
+    hmm_cfg = dataclasses.replace(cfg, road_tracking=RoadTracking.hmm)
     rounds = []
     for _ in range(max(1, repeats)):
         bare = bench_bare_chain(road, duration_s=duration_s)
-        eng = bench_engine(road, duration_s=duration_s)
+        eng = bench_engine(road, duration_s=duration_s, config=cfg)
         hmm = bench_engine(road, duration_s=duration_s, config=hmm_cfg)
         rounds.append((bare, eng, hmm))
     med = lambda xs: float(np.median(xs))  # noqa: E731

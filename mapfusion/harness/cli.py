@@ -1037,6 +1037,8 @@ def bench(
     city_km: Annotated[str, typer.Option("--city-km", help="Size of the synthetic city, WIDTHxHEIGHT km.")] = "10x15",
     repeats: Annotated[int, typer.Option("--repeats", min=1, max=20, help="Rounds of the engine and matcher "
                                          "benchmarks, each beside its anchor; medians are reported.")] = 3,
+    config: Annotated[Optional[Path], typer.Option("--config", help="TOML with a [mapfusion] table: the engine's "
+                                                   "configuration (default: the defaults).")] = None,
 ) -> None:
     """Throughput of the road-map build, the engine (with map priors, against a bare GTSAM chain measured
     in the same run: ratio_to_bare; ratio_to_bare_at_most: the most it could be with only GTSAM's updates and
@@ -1050,8 +1052,17 @@ def bench(
             raise ValueError
     except ValueError:
         _fail(f"--city-km {city_km!r}: expected WIDTHxHEIGHT in km, at most 10x15")
+    from mapfusion.errors import MapFusionError
+    from mapfusion.replay import load_fusion_config
+
+    try:
+        cfg = load_fusion_config(config)
+    except MapFusionError as exc:
+        _fail(str(exc))
     with err_console.status("benchmarking (road map, engine, matcher) ..."):
-        for row in run_benchmarks(duration_s, size, repeats):
+        for row in run_benchmarks(duration_s, size, repeats, cfg):
+            if config is not None and row["benchmark"].startswith("engine"):
+                row = {**row, "config": str(config)}
             if as_json:
                 _print_json(row)
             else:

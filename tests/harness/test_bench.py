@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 import tempfile
 
+from mapfusion.config import FusionConfig, RoadTracking
+from mapfusion.harness import bench
 from mapfusion.harness.bench import run_benchmarks
 
 
@@ -51,3 +53,22 @@ def test_bench_lines_carry_their_anchors_and_ratios(tmp_path, monkeypatch):
     ratios = [s / k for s, k in zip(m["rounds"]["single_matches_per_s"], m["rounds"]["kdtree_queries_per_s"])]
     assert math.isclose(m["single_ratio_to_kdtree"], _median(ratios))
     assert 0.0 < m["batch_first_pass_settled"] <= 1.0
+
+
+def test_the_engine_lines_measure_the_configuration_given(monkeypatch):
+    """``mapfusion bench --config``: both engine lines run the configuration given (the road-hypotheses line with
+    road_tracking = "hmm" added to it): without road fixes no frame spends time in their particles."""
+    seen = []
+    real = bench.bench_engine
+
+    def spy(road, **kw):
+        seen.append(kw["config"])
+        return real(road, **kw)
+
+    monkeypatch.setattr(bench, "bench_engine", spy)
+    rows = run_benchmarks(duration_s=150.0, city_km=(1.0, 1.0), repeats=1, config=FusionConfig(road_fixes=False))
+    got = {r["benchmark"]: r for r in (next(rows), next(rows), next(rows))}
+    assert [c.road_fixes for c in seen] == [False, False]
+    assert [c.road_tracking for c in seen] == [FusionConfig().road_tracking, RoadTracking.hmm]
+    for line in ("engine", "engine_hmm"):
+        assert got[line]["road_fixes_us_per_frame"] == 0.0 and got[line]["gtsam_update_us_per_frame"] > 0

@@ -49,6 +49,7 @@ def test_maps_generate(tmp_path):
         (["maps", "generate", "grid", "--out", "x.osm", "-p", "colz=3"], "colz"),
         (["maps", "generate", "grid", "--out", "x.osm", "-p", "cols=many"], "cols"),
         (["maps", "generate", "city", "--out", "x.osm", "-p", "width_km=40"], "width_km"),
+        (["bench", "--config", "nope.toml"], "nope.toml"),
     ],
 )
 def test_bad_input_exits_2(args, needle, tmp_path, monkeypatch):
@@ -315,6 +316,14 @@ def test_run_writes_every_contract_file(tmp_path):
     # mapfusion plot redraws it
     r2 = runner.invoke(app, ["plot", str(out / "r1"), "--out", str(tmp_path / "p.png")])
     assert r2.exit_code == 0 and Image.open(tmp_path / "p.png").size == (1200, 1000)
+
+
+def test_bench_refuses_a_bad_engine_configuration_before_measuring(tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[mapfusion]\nroad_fix_heading_sigma_deg = -5.0\n")
+    r = runner.invoke(app, ["bench", "--config", str(cfg)])
+    assert r.exit_code == 2 and "road_fix_heading_sigma_deg" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.output
 
 
 def test_plot_bad_input(tmp_path):
