@@ -21,6 +21,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .geometry import fast_clip
+
 if TYPE_CHECKING:
     from .roadmap import RoadMap
 
@@ -61,10 +63,7 @@ class Match:
     cost: float
 
 
-#: numpy's clip ufunc itself: np.clip's Python wrapper costs more than the clipping of a disc's few dozen
-#: points (issue 21); where a numpy lacks it, minimum then maximum give the same values.
-_clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", None) or (
-    lambda v, lo, hi, out: np.maximum(np.minimum(v, hi, out=out), lo, out=out))
+_clip = fast_clip  # (the matcher's name for it)
 _TWO_PI = 2.0 * math.pi
 _DEG_PER_RAD = 180.0 / math.pi
 

@@ -11,6 +11,7 @@ from hypothesis.extra import numpy as hnp
 
 from mapfusion.geometry import (
     cumulative_length,
+    fast_clip,
     headings,
     point_segment_distance,
     process_polyline,
@@ -107,3 +108,11 @@ def test_wrap_angle_range(a):
     w = float(wrap_angle(a))
     assert -math.pi <= w < math.pi
     assert math.isclose(math.cos(w), math.cos(a), abs_tol=1e-6)
+
+
+@given(hnp.arrays(np.float64, st.integers(0, 50), elements=st.floats(allow_nan=True)),
+       st.floats(-1e6, 1e6), st.floats(0.0, 1e6))
+def test_fast_clip_is_np_clip(v, lo, width):
+    """The particles' and the matcher's clip: np.clip's values (NaN kept) without its Python wrapper."""
+    hi = lo + width
+    np.testing.assert_array_equal(fast_clip(v, lo, hi), np.clip(v, lo, hi))

@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 from mapfusion import FusionConfig, RoadMap
 from mapfusion.config import OutageStep
 from mapfusion.relocalise import Guess, Region, Relocaliser, RoadFollower, RoadParticles, Search, _edge_travel, \
-    guess_log_weights
+    _median, _weighted_mean_xy, guess_log_weights
 from mapfusion.roadmap import can_drive
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
@@ -1300,3 +1301,21 @@ def test_a_search_follows_a_u_turn_across_a_dual_carriageway(carriageways, seed)
             r.add(xy[k, 0], xy[k, 1], yaw[k], k)
         mass[deg] = r.particles.mass_within(xy[-1, 0], xy[-1, 1], 30.0)
     assert mass[150.0] >= 0.3 and mass[0.0] < 0.05, mass
+
+
+_finite = st.floats(-1e7, 1e7, allow_nan=False, allow_subnormal=False)
+
+
+@given(hnp.arrays(np.float64, st.tuples(st.integers(1, 300), st.just(2)), elements=_finite),
+       st.integers(0, 2**32 - 1))
+def test_the_weighted_mean_of_the_particles_is_numpys_average_to_the_bit(xy, seed):
+    """located()'s centres: the written-out weighted mean gives np.average's bits (the engine's results stay the
+    same to the bit), whatever the points and the weights (from 1e-300 to 1)."""
+    w = np.random.default_rng(seed).random(len(xy)) ** 8 + 1e-300
+    assert np.array_equal(_weighted_mean_xy(xy, w), np.average(xy, axis=0, weights=w))
+
+
+@given(hnp.arrays(np.float64, st.integers(1, 300), elements=_finite), _finite)
+def test_the_median_of_the_particles_sigmas_is_numpys_to_the_bit(v, x):
+    assert _median(v) == float(np.median(v))
+    assert _median(x) == float(np.median(x))
