@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mapfusion.errors import MapContentError
 from mapfusion.maps import resolve_map
 from mapfusion.roadmap import RoadMap
 from sim.drive import run_drive
@@ -143,27 +144,81 @@ class EngineBench:
 
 
 def route_walk(road: RoadMap, length_m: float, seed: int = 0) -> np.ndarray:
-    """A drive along the road graph: from a random edge, a random onward edge at every junction
-    (no U-turns where another road leaves), way-points chained. Returns (N, 2) positions."""
+    """A legal drive along the road graph (:func:`route_states`), its edges' way-points chained: (N, 2) positions."""
+    pts: list[np.ndarray] = []
+    for state in route_states(road, length_m, seed):
+        e, backward = divmod(state, 2)
+        seg = road.xy_m[road.edge_start[e]:road.edge_end[e]]
+        pts.append((seg[::-1] if backward else seg)[1 if pts else 0:])
+    return np.concatenate(pts)
+
+
+def route_states(road: RoadMap, length_m: float, seed: int = 0) -> list[int]:
+    """The edges of a random legal drive of at least ``length_m``, as states 2·edge + (driven against its
+    drawing): from a random edge, a random onward edge at every junction that may be driven away from it (one-way
+    streets only along their direction; no U-turn where another road leaves, back along a two-way dead end), kept
+    to the largest set of roads from which every other is reachable (a one-way street out of the map is never
+    entered). On a map of two-way roads it is the walk of any random exit, as before one-way streets were kept to
+    (the engine benchmark's city has the same drive)."""
     rng = np.random.default_rng(seed)
-    edges_at: dict[int, list[int]] = {}
-    for e, (u, v) in enumerate(zip(road.edge_u.tolist(), road.edge_v.tolist())):
-        edges_at.setdefault(u, []).append(e)
-        edges_at.setdefault(v, []).append(e)
-    e = int(rng.integers(len(road.edge_u)))
-    forward = True
-    pts = []
+    options = _legal_options(road)
+    keep = _strongly_connected(options)
+    if not keep.any():
+        raise MapContentError(f"{road.source}: no road may be driven round and back (the benchmark's drive)")
+    n_edges = len(road.edge_u)
+    e = int(rng.integers(n_edges))
+    state = 2 * e if keep[2 * e] else 2 * e + 1
+    while not keep[state]:  # (an edge outside that set: another draw)
+        e = int(rng.integers(n_edges))
+        state = 2 * e if keep[2 * e] else 2 * e + 1
+    states = []
     total = 0.0
     while total < length_m:
-        seg = road.xy_m[road.edge_start[e]:road.edge_end[e]]
-        seg = seg if forward else seg[::-1]
-        pts.append(seg if not pts else seg[1:])
-        total += float(road.edge_length_m[e])
-        end = int(road.edge_v[e] if forward else road.edge_u[e])
-        options = [x for x in edges_at[end] if x != e] or [e]
-        e = int(options[int(rng.integers(len(options)))])
-        forward = int(road.edge_u[e]) == end
-    return np.concatenate(pts)
+        states.append(state)
+        total += float(road.edge_length_m[state // 2])
+        onward = [x for x in options[state] if keep[x]]
+        state = onward[int(rng.integers(len(onward)))]
+    return states
+
+
+def _legal_options(road: RoadMap) -> list[list[int]]:
+    """For each state 2·edge + (driven against its drawing): the states a vehicle may go on to at the vertex it
+    reaches (every edge leaving it that may be driven away from it; the edge itself back only when none does and
+    it is two-way), in the order of the map's edges; none for a state its edge's one-way tag forbids."""
+    from mapfusion.roadmap import can_drive
+
+    at: dict[int, list[int]] = {}
+    for x, (u, v) in enumerate(zip(road.edge_u.tolist(), road.edge_v.tolist())):
+        at.setdefault(u, []).append(x)
+        at.setdefault(v, []).append(x)
+    out: list[list[int]] = []
+    for e, (u, v) in enumerate(zip(road.edge_u.tolist(), road.edge_v.tolist())):
+        for backward, (start, end) in enumerate(((u, v), (v, u))):
+            if not can_drive(road, e, end):
+                out.append([])
+                continue
+            onward = [2 * x + (int(road.edge_u[x]) != end) for x in at[end] if x != e and can_drive(
+                road, x, int(road.edge_v[x]) if int(road.edge_u[x]) == end else int(road.edge_u[x]))]
+            if not onward and can_drive(road, e, start):
+                onward = [2 * e + 1 - backward]
+            out.append(onward)
+    return out
+
+
+def _strongly_connected(options: list[list[int]]) -> np.ndarray:
+    """Which states lie in the largest strongly connected set of the graph ``options`` spans."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(options)
+    rows = np.repeat(np.arange(n), [len(o) for o in options])
+    cols = np.array([x for o in options for x in o], dtype=np.int64)
+    graph = csr_matrix((np.ones(len(cols)), (rows, cols)), shape=(n, n))
+    _, label = connected_components(graph, directed=True, connection="strong")
+    live = np.array([bool(o) for o in options])
+    if not live.any():
+        return live
+    return label == np.bincount(label[live]).argmax()
 
 
 #: The engine benchmark's drive has GPS (1 Hz) for this long, then odometry alone.
@@ -351,24 +406,40 @@ def _floor(rounds: list, which: int) -> tuple[dict, dict]:
 
 
 def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (10.0, 15.0), repeats: int = 3,
-                   config=None):
+                   config=None, map_path: str | Path | None = None):
     """``mapfusion bench``: one dict per benchmark (``benchmark`` names it), each with the anchor
     measured in the same run and the ratio to it. The engine and its anchor run ``repeats`` times,
     interleaved (a shared machine's load drifts between runs; neighbours see the same load): the
     figures are medians, each ratio the median of the rounds' ratios. ``config``: the engine's
-    FusionConfig (default: the defaults; the road-hypotheses line adds ``road_tracking = "hmm"``)."""
+    FusionConfig (default: the defaults; the road-hypotheses line adds ``road_tracking = "hmm"``).
+    ``map_path``: a map (a built-in name or an OSM file) every line measures in place of the synthetic city
+    of ``city_km``; each line names its map. Raises MapFileError (missing, not OSM) or MapContentError (nothing
+    drivable) for a map that is not one."""
     from mapfusion import synthetic
-    from mapfusion.config import FusionConfig, RoadTracking
 
-    # (the city's OSM file is needed only for the build: it is not left behind in the temporary directory)
-    with tempfile.TemporaryDirectory(prefix="mapfusion-bench-") as d:
-        city = synthetic.write("city", Path(d) / "city.osm", width_km=city_km[0], height_km=city_km[1])
+    if map_path is not None:
+        path = resolve_map(map_path)
         t0 = time.perf_counter()
-        road = RoadMap.from_osm(city, cache=False)
+        road = RoadMap.from_osm(path, cache=False)
         build_s = time.perf_counter() - t0
-    yield {"benchmark": "roadmap_build", "map": f"synthetic city {city_km[0]:g} × {city_km[1]:g} km",
-           "waypoints": len(road), "build_s": build_s}
+        name = str(map_path)
+    else:  # (the city's OSM file is needed only for the build: it is not left behind in the temporary directory)
+        with tempfile.TemporaryDirectory(prefix="mapfusion-bench-") as d:
+            city = synthetic.write("city", Path(d) / "city.osm", width_km=city_km[0], height_km=city_km[1])
+            t0 = time.perf_counter()
+            road = RoadMap.from_osm(city, cache=False)
+            build_s = time.perf_counter() - t0
+        name = f"synthetic city {city_km[0]:g} × {city_km[1]:g} km"
+    yield {"benchmark": "roadmap_build", "map": name, "waypoints": len(road), "build_s": build_s}
+    for row in _timed_lines(road, duration_s, repeats, config):
+        yield {"benchmark": row.pop("benchmark"), "map": name, **row}
+
+
+def _timed_lines(road: RoadMap, duration_s: float, repeats: int, config):
+    """The engine, road-hypotheses, search and matcher lines of :func:`run_benchmarks` on one map."""
     import dataclasses
+
+    from mapfusion.config import FusionConfig, RoadTracking
 
     cfg = config or FusionConfig()
     hmm_cfg = dataclasses.replace(cfg, road_tracking=RoadTracking.hmm)

@@ -1039,6 +1039,9 @@ def bench(
                                          "benchmarks, each beside its anchor; medians are reported.")] = 3,
     config: Annotated[Optional[Path], typer.Option("--config", help="TOML with a [mapfusion] table: the engine's "
                                                    "configuration (default: the defaults).")] = None,
+    map_name: Annotated[Optional[str], typer.Option("--map", help="A map to measure on (a built-in name such as "
+                                                    "helsinki, or an OSM file) in place of the synthetic city; "
+                                                    "--city-km is then not used.")] = None,
 ) -> None:
     """Throughput of the road-map build, the engine (with map priors, against a bare GTSAM chain measured
     in the same run: ratio_to_bare; ratio_to_bare_at_most: the most it could be with only GTSAM's updates and
@@ -1053,21 +1056,27 @@ def bench(
     except ValueError:
         _fail(f"--city-km {city_km!r}: expected WIDTHxHEIGHT in km, at most 10x15")
     from mapfusion.errors import MapFusionError
+    from mapfusion.maps import resolve_map
     from mapfusion.replay import load_fusion_config
 
     try:
         cfg = load_fusion_config(config)
+        if map_name is not None:
+            resolve_map(map_name)  # (a missing map fails here, before any measurement)
     except MapFusionError as exc:
         _fail(str(exc))
     with err_console.status("benchmarking (road map, engine, matcher) ..."):
-        for row in run_benchmarks(duration_s, size, repeats, cfg):
-            if config is not None and row["benchmark"].startswith("engine"):
-                row = {**row, "config": str(config)}
-            if as_json:
-                _print_json(row)
-            else:
-                console.print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()
-                                       if k != "rounds"), highlight=False)  # (the rounds: in --json)
+        try:
+            for row in run_benchmarks(duration_s, size, repeats, cfg, map_name):
+                if config is not None and row["benchmark"].startswith("engine"):
+                    row = {**row, "config": str(config)}
+                if as_json:
+                    _print_json(row)
+                else:
+                    console.print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                                           for k, v in row.items() if k != "rounds"), highlight=False)  # (rounds: --json)
+        except MapFusionError as exc:  # (a map file that is not one: its build fails before any measurement)
+            _fail(str(exc))
 
 
 def _finite_or_null(obj):

@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+import collections
 import math
 import tempfile
 
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapfusion import RoadMap
 from mapfusion.config import FusionConfig, RoadTracking
 from mapfusion.harness import bench
 from mapfusion.harness.bench import run_benchmarks
+from mapfusion.roadmap import can_drive
+from tests.helpers import MAPS
 
 
 def _median(xs):
@@ -72,3 +80,65 @@ def test_the_engine_lines_measure_the_configuration_given(monkeypatch):
     assert [c.road_tracking for c in seen] == [FusionConfig().road_tracking, RoadTracking.hmm]
     for line in ("engine", "engine_hmm"):
         assert got[line]["road_fixes_us_per_frame"] == 0.0 and got[line]["gtsam_update_us_per_frame"] > 0
+
+
+@pytest.fixture(scope="module", params=["synthetic/grid.osm", "helsinki.osm.pbf"])
+def one_way_map(request):
+    """A map with one-way streets: the synthetic grid's every other street, a real city's."""
+    return RoadMap.from_osm(MAPS / request.param)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_the_benchmark_drive_keeps_to_one_way_streets(one_way_map, seed):
+    """The engine benchmark's drive drives every edge the way its tags allow, each from the vertex the one before
+    it reached: a drive against a one-way street is one no road particle may follow, and measured the engine on
+    a failure of its own benchmark (the bundled Helsinki map's drive went the wrong way 2 km in)."""
+    road = one_way_map
+    states = bench.route_states(road, 3000.0, seed)
+    assert sum(road.edge_length_m[s // 2] for s in states) >= 3000.0
+    ends = []
+    for s in states:
+        e, backward = divmod(s, 2)
+        start, end = (int(road.edge_v[e]), int(road.edge_u[e])) if backward else \
+            (int(road.edge_u[e]), int(road.edge_v[e]))
+        assert can_drive(road, e, end)
+        if ends:
+            assert start == ends[-1]
+        ends.append(end)
+
+
+def test_on_a_map_of_two_way_roads_the_drive_turns_every_way_and_back_only_at_dead_ends():
+    """Where every road is two-way (the engine benchmark's synthetic city) a 20 km drive goes straight on, turns
+    left and turns right at junctions, and drives back along its own edge only where no other road leaves."""
+    from mapfusion import synthetic
+
+    with tempfile.TemporaryDirectory() as d:
+        road = RoadMap.from_osm(synthetic.write("city", f"{d}/city.osm", width_km=1.0, height_km=1.0))
+    degree = collections.Counter(road.edge_u.tolist() + road.edge_v.tolist())
+    states = bench.route_states(road, 20000.0, 0)
+    turns: collections.Counter = collections.Counter()
+
+    def heading(state: int, at_end: bool) -> float:
+        e, backward = divmod(state, 2)
+        i = road.edge_end[e] - 2 if at_end != bool(backward) else road.edge_start[e]
+        return float(road.yaw_rad[i]) + math.pi * backward
+
+    for a, b in zip(states, states[1:]):
+        if a // 2 == b // 2:
+            vertex = int(road.edge_u[a // 2] if a % 2 else road.edge_v[a // 2])
+            assert degree[vertex] == 1  # back along its own edge: a dead end
+            turns["back"] += 1
+            continue
+        d = math.degrees(math.remainder(heading(b, False) - heading(a, True), 2 * math.pi))
+        turns["straight" if abs(d) < 30 else "left" if d > 0 else "right"] += 1
+    assert turns["straight"] > 0 and turns["left"] > 0 and turns["right"] > 0, turns
+
+
+def test_the_bench_measures_a_map_given_in_place_of_the_synthetic_city():
+    """``mapfusion bench --map helsinki``: every line is measured on the bundled Helsinki map, and says so."""
+    rows = {r["benchmark"]: r for r in run_benchmarks(duration_s=200.0, repeats=1, map_path="helsinki")}
+    assert set(rows) == {"roadmap_build", "engine", "engine_hmm", "matcher", "relocalise"}
+    assert all(r["map"] == "helsinki" for r in rows.values())
+    assert rows["roadmap_build"]["waypoints"] == len(RoadMap.from_osm(MAPS / "helsinki.osm.pbf"))
+    assert rows["engine"]["frames"] == 2000 and rows["engine"]["ratio_to_bare"] > 0

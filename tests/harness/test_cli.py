@@ -326,6 +326,16 @@ def test_bench_refuses_a_bad_engine_configuration_before_measuring(tmp_path):
     assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.output
 
 
+def test_bench_refuses_a_map_that_is_not_one_before_measuring(tmp_path):
+    r = runner.invoke(app, ["bench", "--map", str(tmp_path / "nowhere.osm")])
+    assert r.exit_code == 2 and "nowhere.osm" in r.stderr and "Traceback" not in r.output
+    junk = tmp_path / "junk.osm"
+    junk.write_text("not osm at all")
+    r = runner.invoke(app, ["bench", "--map", str(junk)])
+    assert r.exit_code == 2 and "junk.osm" in r.stderr and "Traceback" not in r.output
+    assert len(r.stderr.strip().splitlines()) == 1
+
+
 def test_plot_bad_input(tmp_path):
     r = runner.invoke(app, ["plot", str(tmp_path), "--out", str(tmp_path / "p.png")])
     assert r.exit_code == 2 and "not a run directory" in r.stderr
