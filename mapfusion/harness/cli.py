@@ -1073,8 +1073,9 @@ def bench(
                 if as_json:
                     _print_json(row)
                 else:
+                    # (the rounds: in --json)
                     console.print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                                           for k, v in row.items() if k != "rounds"), highlight=False)  # (rounds: --json)
+                                           for k, v in row.items() if k != "rounds"), highlight=False)
         except MapFusionError as exc:  # (a map file that is not one: its build fails before any measurement)
             _fail(str(exc))
 
