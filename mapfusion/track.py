@@ -348,11 +348,18 @@ class Track:
         lever = self.lever_arm.lever(1.0)
         across = along = turn = 0.0
         slides = self._slides
-        for j in range(max(self.first + 1, k - SLIDE_FRAMES + 1), k + 1):
-            f = slides[j]
+        held = slides.first
+        lo = max(self.first + 1, k - SLIDE_FRAMES + 1)
+        slides[k]  # (a frame that is not held raises IndexError, as reading it does)
+        # (the held list's own slice and _slide's arithmetic written out: this runs every frame, issue 21)
+        for f in slides._items[max(lo - held, 0):k + 1 - held]:
             if f is not None and f[7]:  # (held for every frame when nonholonomic; f[7]: a short step)
-                a, b = _slide(f, lever)
-                across, along, turn = across + a, along + b, turn + f[2]
+                x, y, absyaw, cos_m1, sin_yaw, c, s, _ = f
+                ax, ay = x - lever * cos_m1, y - lever * sin_yaw
+                b, a = c * ax + s * ay, -s * ax + c * ay
+                if not b >= 0.0:  # (as _slide: a backward step's taken the other way round)
+                    a, b = -a, -b
+                across, along, turn = across + a, along + b, turn + absyaw
         return along * scale >= SLIDE_MIN_M and turn <= SLIDE_MAX_TURN_RAD and \
             abs(across) > math.tan(self.slip_rad) * along
 
