@@ -561,7 +561,8 @@ class _ArcIndex:
         if not finite.all() or len(self._values) == 1:
             return np.searchsorted(self._values[:-1], g, side="right") - 1
         first = self._first
-        i = first[fast_clip(np.floor(g).astype(np.int64), 0, len(first) - 1)]
+        # (truncation is the floor for g ≥ 0, and a g < 0 is clipped to 0 and answered -1 either way)
+        i = first[fast_clip(g.astype(np.int64), 0, len(first) - 1)]
         i = np.where(g < 0.0, -1, i)
         active = np.flatnonzero(self._values[i + 1] <= g)
         while active.size:  # (i + 1 stays within the array: its last value is +inf)
