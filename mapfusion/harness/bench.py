@@ -165,12 +165,11 @@ def route_states(road: RoadMap, length_m: float, seed: int = 0) -> list[int]:
     keep = _strongly_connected(options)
     if not keep.any():
         raise MapContentError(f"{road.source}: no road may be driven round and back (the benchmark's drive)")
-    n_edges = len(road.edge_u)
-    e = int(rng.integers(n_edges))
-    state = 2 * e if keep[2 * e] else 2 * e + 1
-    while not keep[state]:  # (an edge outside that set: another draw)
-        e = int(rng.integers(n_edges))
+    while True:  # (an edge outside that set: another draw)
+        e = int(rng.integers(len(road.edge_u)))
         state = 2 * e if keep[2 * e] else 2 * e + 1
+        if keep[state]:
+            break
     states = []
     total = 0.0
     while total < length_m:
@@ -183,25 +182,20 @@ def route_states(road: RoadMap, length_m: float, seed: int = 0) -> list[int]:
 
 def _legal_options(road: RoadMap) -> list[list[int]]:
     """For each state 2·edge + (driven against its drawing): the states a vehicle may go on to at the vertex it
-    reaches (every edge leaving it that may be driven away from it; the edge itself back only when none does and
-    it is two-way), in the order of the map's edges; none for a state its edge's one-way tag forbids."""
-    from mapfusion.roadmap import can_drive
+    reaches (the road particles' own legal exits; the edge itself back only when there is none and it is
+    two-way); none for a state its edge's one-way tag forbids."""
+    from mapfusion.relocalise import _edge_travel, _exits
 
-    at: dict[int, list[int]] = {}
-    for x, (u, v) in enumerate(zip(road.edge_u.tolist(), road.edge_v.tolist())):
-        at.setdefault(u, []).append(x)
-        at.setdefault(v, []).append(x)
+    exits, travel = _exits(road), _edge_travel(road)
     out: list[list[int]] = []
-    for e, (u, v) in enumerate(zip(road.edge_u.tolist(), road.edge_v.tolist())):
-        for backward, (start, end) in enumerate(((u, v), (v, u))):
-            if not can_drive(road, e, end):
-                out.append([])
-                continue
-            onward = [2 * x + (int(road.edge_u[x]) != end) for x in at[end] if x != e and can_drive(
-                road, x, int(road.edge_v[x]) if int(road.edge_u[x]) == end else int(road.edge_u[x]))]
-            if not onward and can_drive(road, e, start):
-                onward = [2 * e + 1 - backward]
-            out.append(onward)
+    for state in range(2 * len(travel)):
+        e, backward = divmod(state, 2)
+        if travel[e] == (1 if backward else -1):  # (a one-way edge driven against its tag)
+            out.append([])
+            continue
+        rows = slice(exits.start[state], exits.start[state + 1])
+        onward = (2 * exits.edge[rows] + (exits.direction[rows] < 0)).tolist()
+        out.append(onward or ([state ^ 1] if travel[e] == 0 else []))
     return out
 
 

@@ -1056,13 +1056,10 @@ def bench(
     except ValueError:
         _fail(f"--city-km {city_km!r}: expected WIDTHxHEIGHT in km, at most 10x15")
     from mapfusion.errors import MapFusionError
-    from mapfusion.maps import resolve_map
     from mapfusion.replay import load_fusion_config
 
     try:
         cfg = load_fusion_config(config)
-        if map_name is not None:
-            resolve_map(map_name)  # (a missing map fails here, before any measurement)
     except MapFusionError as exc:
         _fail(str(exc))
     with err_console.status("benchmarking (road map, engine, matcher) ..."):
@@ -1076,7 +1073,7 @@ def bench(
                     # (the rounds: in --json)
                     console.print(" ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                                            for k, v in row.items() if k != "rounds"), highlight=False)
-        except MapFusionError as exc:  # (a map file that is not one: its build fails before any measurement)
+        except MapFusionError as exc:  # (a missing map, or one that is not a map: the first thing the bench reads)
             _fail(str(exc))
 
 
