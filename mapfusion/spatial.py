@@ -1,11 +1,13 @@
 """A cell index over the way-points for single radius queries (issue 21).
 
 A k-d tree answers one ball query in 11–15 µs here (issue 21's machine), much of it spent building
-a Python list of the hits. Here the points are bucketed in square cells and stored cell by cell in
-row-major order, so the cells a disc covers are one contiguous slice per row of cells: a query is
-a few table look-ups and slices of arrays that already hold each point's position and heading,
-with no tree walk and no per-hit Python object. The k-d tree stays for the batch matcher's
-k-nearest queries.
+a Python list of the hits. Here the points are bucketed in square cells, and stored band by band: band
+r holds the points of the rows of cells r, r + 1 and r + 2, column by column. A disc no wider than a
+cell in radius covers at most three rows and three columns of cells, which are one contiguous slice
+of one band: a query is a few arithmetic steps, two table look-ups and a slice of an array that
+already holds each point's position and heading, with no tree walk, no joining of pieces and no
+per-hit Python object. Every point is stored three times. The k-d tree stays for the batch
+matcher's k-nearest queries.
 """
 
 from __future__ import annotations
@@ -15,17 +17,23 @@ import math
 
 import numpy as np
 
-#: Side of a cell (m): the matcher's default radius, so a query of that radius covers 2–3 rows.
+#: Side of a cell (m): the matcher's default radius, so a query of that radius is one band's slice.
 CELL_M = 20.0
-#: A table of every cell's first point is kept when it has at most this many entries per point
+#: The rows of cells a band holds (its own and the next two).
+BAND_ROWS = 3
+#: A table of every band's column starts is kept when it has at most this many entries per point
 #: (and at least this many cells are allowed): a sparse regional map falls back to a binary search.
 DENSE_CELLS_PER_POINT, DENSE_CELLS_MIN = 4, 1 << 20
 
 
 class CellIndex:
-    """Points (N, 2) in cells of ``cell_m``; ``block`` (5, N) holds the points' x, y, their headings'
-    cosines and sines and a sign (the matcher's: -1 where both directions of travel are legal, +1 where
-    only the heading's) in cell order, ``order`` maps that order back to the point indices."""
+    """Points (N, 2) in cells of ``cell_m``, stored in bands of three rows of cells (module docstring).
+
+    ``block`` (5, 3N at most) holds, band by band and within a band column by column, then row by row,
+    then by point index, the points' x, y, their headings' cosines and sines and a sign (the matcher's:
+    -1 where both directions of travel are legal, +1 where only the heading's); ``point`` maps each entry
+    back to its point index and ``rank`` to the point's place in row-major cell order (the order
+    :meth:`query` answers in)."""
 
     def __init__(self, xy_m: np.ndarray, cos: np.ndarray, sin: np.ndarray, sign: np.ndarray | None = None,
                  cell_m: float = CELL_M) -> None:
@@ -38,25 +46,47 @@ class CellIndex:
         cy = np.floor((xy[:, 1] - self.y0) / self.cell_m).astype(np.int64)
         self.ncol = int(cx.max()) + 1 if n else 1
         self.nrow = int(cy.max()) + 1 if n else 1
-        key = cy * self.ncol + cx
-        self.order = np.argsort(key, kind="stable").astype(np.intp)
-        self.key = key[self.order]
-        # x, y, cos, sin, sign as the rows of one (5, N) array: a query gathers one slice a row of cells,
-        # not five, and each quantity stays contiguous for numpy's loops
+        cell = cy * self.ncol + cx
+        by_cell = np.argsort(cell, kind="stable")  # row-major cell order, then point index
+        cell = cell[by_cell]
         sign = np.full(n, -1.0) if sign is None else np.asarray(sign, dtype=float)
-        self.block = np.ascontiguousarray(np.vstack([xy[self.order, 0], xy[self.order, 1],
-                                                     np.asarray(cos, dtype=float)[self.order],
-                                                     np.asarray(sin, dtype=float)[self.order], sign[self.order]]))
+        # (row by row into one array: numpy's 2-D fancy indexing is several times slower at this size)
+        in_cells = _take_rows((xy[:, 0], xy[:, 1], np.asarray(cos, dtype=float), np.asarray(sin, dtype=float), sign),
+                              by_cell)
+        # every non-empty cell (r, c) is part of bands r - 2, r - 1 and r: those (band, column, row) triples in
+        # order, each standing for its cell's run of points in cell order
+        first = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]]) if n else np.zeros(0, dtype=np.intp)
+        size = np.diff(np.r_[first, n])
+        row, col = np.divmod(cell[first], self.ncol)
+        dr = np.repeat(np.arange(BAND_ROWS), len(first))
+        band = np.tile(row, BAND_ROWS) - dr
+        run = np.tile(np.arange(len(first)), BAND_ROWS)
+        ok = band >= 0
+        band, run, dr = band[ok], run[ok], dr[ok]
+        key = band * self.ncol + col[run]
+        order = np.argsort(key * BAND_ROWS + dr, kind="stable")
+        key, run = key[order], run[order]
+        counts = size[run]
+        ends = np.cumsum(counts)
+        #: each entry's place in row-major cell order (where :meth:`query` answers in that order)
+        self.rank = np.repeat(first[run] - (ends - counts), counts) + np.arange(int(ends[-1]) if n else 0)
+        self.point = by_cell[self.rank]
+        self.key = np.repeat(key, counts)
+        # x, y, cos, sin, sign as the rows of one array: a query takes one slice of every row at once,
+        # and each quantity stays contiguous for numpy's loops
+        self.block = _take_rows(in_cells, self.rank)
         cells = self.ncol * self.nrow
         self._start: array.array | None = None  # (compact: a query's look-ups stay in few cache lines)
         if cells <= max(DENSE_CELLS_PER_POINT * n, DENSE_CELLS_MIN):
             self._start = array.array("q", np.searchsorted(self.key, np.arange(cells + 1)).astype(np.int64).tobytes())
+        self._n = n
 
     def __len__(self) -> int:
-        return len(self.order)
+        return self._n
 
     def slices(self, x: float, y: float, radius_m: float) -> list[tuple[int, int]]:
-        """(start, stop) in cell order of every non-empty row of cells the disc's bounding box covers."""
+        """(start, stop) of the entries of every non-empty band slice the disc's bounding box needs: one
+        band for every three rows of cells it covers, the columns it covers in each."""
         cell, ncol, start = self.cell_m, self.ncol, self._start
         # (comparisons rather than min/max calls: this runs once a match, issue 21)
         c0 = math.floor((x - radius_m - self.x0) / cell)
@@ -73,20 +103,23 @@ class CellIndex:
             r1 = self.nrow - 1
         if c0 > c1 or r0 > r1:
             return []
+        if r1 - r0 < BAND_ROWS and start is not None:  # (the common case: one band, r0's)
+            a, b = start[r0 * ncol + c0], start[r0 * ncol + c1 + 1]
+            return [(a, b)] if b > a else []
+        # bands r0, r0 + 3, ...: disjoint, together every row r0..r1 (the last may reach past r1, where
+        # every point lies farther than the radius)
+        rows = list(range(r0 * ncol, r1 * ncol + 1, BAND_ROWS * ncol))
         if start is not None:
-            out = []
-            for row in range(r0 * ncol, r1 * ncol + 1, ncol):
-                a, b = start[row + c0], start[row + c1 + 1]
-                if b > a:
-                    out.append((a, b))
-            return out
-        rows = np.arange(r0 * ncol, r1 * ncol + 1, ncol)
-        b = np.searchsorted(self.key, np.concatenate([rows + c0, rows + c1 + 1])).tolist()
-        m = len(rows)
-        return [s for s in zip(b[:m], b[m:]) if s[1] > s[0]]
+            bounds = [(start[row + c0], start[row + c1 + 1]) for row in rows]
+        else:
+            first = [row + c0 for row in rows]
+            b = np.searchsorted(self.key, first + [row + c1 + 1 for row in rows]).tolist()
+            bounds = list(zip(b[:len(rows)], b[len(rows):]))
+        return [s for s in bounds if s[1] > s[0]]
 
     def gather(self, arr: np.ndarray, sl: list[tuple[int, int]]) -> np.ndarray:
-        """The entries of ``arr`` (in cell order, along its last axis) the slices select, as one array."""
+        """The entries of ``arr`` (in band order, along its last axis) the slices select, as one array
+        (a view for one slice)."""
         if len(sl) == 1:
             return arr[..., sl[0][0]:sl[0][1]]
         return np.concatenate([arr[..., a:b] for a, b in sl], axis=-1)
@@ -95,12 +128,13 @@ class CellIndex:
         """The point index of the k-th entry of the slices' concatenation."""
         for a, b in sl:
             if k < b - a:
-                return int(self.order[a + k])
+                return int(self.point[a + k])
             k -= b - a
         raise IndexError(k)
 
     def query(self, x: float, y: float, radius_m: float) -> np.ndarray:
-        """Indices of the points within ``radius_m`` of (x, y) (distance ≤ radius), in cell order."""
+        """Indices of the points within ``radius_m`` of (x, y) (distance ≤ radius), in row-major cell
+        order (then by index)."""
         sl = self.slices(x, y, radius_m)
         if not sl:
             return np.empty(0, dtype=np.intp)
@@ -108,4 +142,14 @@ class CellIndex:
         dx = b[0] - x
         dy = b[1] - y
         inside = np.flatnonzero(dx * dx + dy * dy <= radius_m * radius_m)
-        return self.gather(self.order, sl)[inside]
+        rank = self.gather(self.rank, sl)[inside]
+        order = rank.argsort()
+        return self.gather(self.point, sl)[inside][order]
+
+
+def _take_rows(rows, index: np.ndarray) -> np.ndarray:
+    """A (len(rows), len(index)) array of each row's entries at ``index``."""
+    out = np.empty((len(rows), len(index)))
+    for i, r in enumerate(rows):
+        np.take(r, index, out=out[i])
+    return out

@@ -27,7 +27,23 @@ def test_cell_query_is_every_point_within_the_radius(n, x, y, radius, seed, cell
     idx = CellIndex(xy, np.cos(yaw), np.sin(yaw), cell_m=cell)
     got = idx.query(x, y, radius)
     want = np.flatnonzero((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2 <= radius * radius)
-    assert sorted(got.tolist()) == want.tolist()
+    # in row-major cell order, then by index (what relocalisation's particle spread is drawn over), each once
+    lo = xy.min(axis=0) if n else np.zeros(2)
+    cell = np.floor((xy[want, 1] - lo[1]) / cell) * 1e6 + np.floor((xy[want, 0] - lo[0]) / cell)
+    assert got.tolist() == want[np.lexsort((want, cell))].tolist()
+
+
+@given(st.integers(1, 300), st.integers(0, 2**31 - 1), st.sampled_from([1.0, 5.0, 20.0]))
+def test_every_point_is_in_the_bands_of_its_row_and_the_two_rows_before(n, seed, cell):
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 120, (n, 2))
+    idx = CellIndex(xy, np.ones(n), np.zeros(n), cell_m=cell)
+    row = np.floor((xy[:, 1] - xy[:, 1].min()) / cell).astype(int)
+    band = idx.key // idx.ncol
+    for i in range(n):
+        assert sorted(band[idx.point == i].tolist()) == [b for b in (row[i] - 2, row[i] - 1, row[i]) if b >= 0]
+    assert np.all(np.diff(idx.key) >= 0)  # bands, then columns, in order
+    assert np.array_equal(idx.block[0], xy[idx.point, 0]) and np.array_equal(idx.block[1], xy[idx.point, 1])
 
 
 def test_a_sparse_map_uses_the_binary_search_and_answers_the_same():
@@ -37,6 +53,7 @@ def test_a_sparse_map_uses_the_binary_search_and_answers_the_same():
     assert sorted(idx.query(1e6, 1e6, 10.0).tolist()) == [1, 3]
     assert sorted(idx.query(0.0, 0.0, 6.0).tolist()) == [0, 2]
     assert idx.query(5e5, 5e5, 10.0).size == 0
+    assert idx.query(5.0, 3.0, 0.5).tolist() == [2]  # one band's slice
 
 
 def _brute(road, x, y, yaw, radius):
