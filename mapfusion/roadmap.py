@@ -167,7 +167,9 @@ class RoadMap:
         self._way_row = {int(w): i for i, w in enumerate(self.way_ids)}
         self.way_lanes = np.array([w.lanes for w in ways], dtype=np.int16)
 
-        self.xy_m = arrays["xy_m"]
+        self.xy_m = np.ascontiguousarray(arrays["xy_m"], dtype=np.float64)
+        #: the way-points' positions as complex numbers x + iy (a view of ``xy_m``: the matcher's distances)
+        self.xy_complex = self.xy_m.view(np.complex128).reshape(-1)
         self.yaw_rad = arrays["yaw_rad"]
         self.s_m = arrays["s_m"]
         self.way_index = arrays["way_index"]

@@ -29,9 +29,10 @@ DENSE_CELLS_PER_POINT, DENSE_CELLS_MIN = 4, 1 << 20
 class CellIndex:
     """Points (N, 2) in cells of ``cell_m``, stored in bands of three rows of cells (module docstring).
 
-    ``block`` (5, 3N at most) holds, band by band and within a band column by column, then row by row,
-    then by point index, the points' x, y, their headings' cosines and sines and a sign (the matcher's:
-    -1 where both directions of travel are legal, +1 where only the heading's); ``point`` maps each entry
+    Band by band and within a band column by column, then row by row, then by point index (3N entries
+    at most), ``z`` holds the points' positions as complex numbers x + iy and ``block`` (3, ·) their
+    headings' cosines and sines and a sign (the matcher's: -1 where both directions of travel are
+    legal, +1 where only the heading's); ``point`` maps each entry
     back to its point index and ``rank`` to the point's place in row-major cell order (the order
     :meth:`query` answers in)."""
 
@@ -72,9 +73,11 @@ class CellIndex:
         self.rank = np.repeat(first[run] - (ends - counts), counts) + np.arange(int(ends[-1]) if n else 0)
         self.point = by_cell[self.rank]
         self.key = np.repeat(key, counts)
-        # x, y, cos, sin, sign as the rows of one array: a query takes one slice of every row at once,
-        # and each quantity stays contiguous for numpy's loops
-        self.block = _take_rows(in_cells, self.rank)
+        # positions as complex numbers (one subtraction and one absolute value give the distances); cos, sin
+        # and sign as the rows of one array: a query takes one slice of every row at once, and each quantity
+        # stays contiguous for numpy's loops
+        self.z = _take_rows(in_cells[:2], self.rank).T.copy().view(np.complex128).reshape(-1)
+        self.block = _take_rows(in_cells[2:], self.rank)
         cells = self.ncol * self.nrow
         self._start: array.array | None = None  # (compact: a query's look-ups stay in few cache lines)
         if cells <= max(DENSE_CELLS_PER_POINT * n, DENSE_CELLS_MIN):
@@ -138,9 +141,9 @@ class CellIndex:
         sl = self.slices(x, y, radius_m)
         if not sl:
             return np.empty(0, dtype=np.intp)
-        b = self.gather(self.block, sl)
-        dx = b[0] - x
-        dy = b[1] - y
+        z = self.gather(self.z, sl)
+        dx = z.real - x
+        dy = z.imag - y
         inside = np.flatnonzero(dx * dx + dy * dy <= radius_m * radius_m)
         rank = self.gather(self.rank, sl)[inside]
         order = rank.argsort()

@@ -12,7 +12,7 @@ from hypothesis import given
 from hypothesis.extra import numpy as hnp
 from hypothesis import strategies as st
 
-from mapfusion.matcher import Match, _clip, lateral_bound_ok, map_pose, match, match_candidates, match_range
+from mapfusion.matcher import Match, _clip, as_complex, lateral_bound_ok, map_pose, match, match_candidates, match_range
 from mapfusion.spatial import CellIndex
 
 angles = st.floats(-math.pi, math.pi)
@@ -43,7 +43,8 @@ def test_every_point_is_in_the_bands_of_its_row_and_the_two_rows_before(n, seed,
     for i in range(n):
         assert sorted(band[idx.point == i].tolist()) == [b for b in (row[i] - 2, row[i] - 1, row[i]) if b >= 0]
     assert np.all(np.diff(idx.key) >= 0)  # bands, then columns, in order
-    assert np.array_equal(idx.block[0], xy[idx.point, 0]) and np.array_equal(idx.block[1], xy[idx.point, 1])
+    assert np.array_equal(idx.z.real, xy[idx.point, 0]) and np.array_equal(idx.z.imag, xy[idx.point, 1])
+    assert np.array_equal(idx.block[0], np.ones(len(idx.point))) and np.array_equal(idx.block[2], -np.ones(len(idx.point)))
 
 
 def test_a_sparse_map_uses_the_binary_search_and_answers_the_same():
@@ -57,11 +58,24 @@ def test_a_sparse_map_uses_the_binary_search_and_answers_the_same():
 
 
 def _brute(road, x, y, yaw, radius):
-    d = np.hypot(road.xy_m[:, 0] - x, road.xy_m[:, 1] - y)
+    d = np.abs(road.xy_complex - complex(x, y))  # the matcher's distance E (next test: hypot's, to 2 ulp)
     near = np.flatnonzero(d <= radius)
     if near.size == 0:
         return None
     return match(road, x, y, yaw, radius, candidates=near)
+
+
+@given(hnp.arrays(np.float64, st.integers(1, 50), elements=st.floats(-1e5, 1e5)),
+       hnp.arrays(np.float64, st.integers(1, 50), elements=st.floats(-1e5, 1e5)), st.floats(-1e5, 1e5),
+       st.floats(-1e5, 1e5))
+def test_the_matchers_distance_is_hypots_to_two_units_in_the_last_place(px, py, x, y):
+    n = min(len(px), len(py))
+    xy = np.column_stack([px[:n], py[:n]])
+    want = np.hypot(xy[:, 0] - x, xy[:, 1] - y)
+    _, _, e, _, _ = match_candidates(x, y, 0.0, xy, np.ones(n), np.zeros(n))
+    got = np.abs(as_complex(xy) - complex(x, y))
+    assert np.all(np.abs(got - want) <= 2 * np.spacing(want) + 1e-300)
+    assert e == got.min()  # every heading along the pose's: D = E, the best is the nearest by that distance
 
 
 @given(i=st.integers(0, 10**6), dx=st.floats(-30, 30), dy=st.floats(-30, 30), yaw=angles,
