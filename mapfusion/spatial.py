@@ -72,7 +72,8 @@ class CellIndex:
         #: each entry's place in row-major cell order (where :meth:`query` answers in that order)
         self.rank = np.repeat(first[run] - (ends - counts), counts) + np.arange(int(ends[-1]) if n else 0)
         self.point = by_cell[self.rank]
-        self.key = np.repeat(key, counts)
+        #: each entry's band × columns + column (for the binary search where no table is kept)
+        self.key: np.ndarray | None = np.repeat(key, counts)
         # positions as complex numbers (one subtraction and one absolute value give the distances); cos, sin
         # and sign as the rows of one array: a query takes one slice of every row at once, and each quantity
         # stays contiguous for numpy's loops
@@ -82,6 +83,7 @@ class CellIndex:
         self._start: array.array | None = None  # (compact: a query's look-ups stay in few cache lines)
         if cells <= max(DENSE_CELLS_PER_POINT * n, DENSE_CELLS_MIN):
             self._start = array.array("q", np.searchsorted(self.key, np.arange(cells + 1)).astype(np.int64).tobytes())
+            self.key = None  # (the table answers every look-up: 8 bytes an entry saved)
         self._n = n
 
     def __len__(self) -> int:
@@ -116,6 +118,7 @@ class CellIndex:
             bounds = [(start[row + c0], start[row + c1 + 1]) for row in rows]
         else:
             first = [row + c0 for row in rows]
+            assert self.key is not None
             b = np.searchsorted(self.key, first + [row + c1 + 1 for row in rows]).tolist()
             bounds = list(zip(b[:len(rows)], b[len(rows):]))
         return [s for s in bounds if s[1] > s[0]]
