@@ -32,9 +32,8 @@ class CellIndex:
     Band by band and within a band column by column, then row by row, then by point index (3N entries
     at most), ``z`` holds the points' positions as complex numbers x + iy and ``block`` (3, ·) their
     headings' cosines and sines and a sign (the matcher's: -1 where both directions of travel are
-    legal, +1 where only the heading's); ``point`` maps each entry
-    back to its point index and ``rank`` to the point's place in row-major cell order (the order
-    :meth:`query` answers in)."""
+    legal, +1 where only the heading's); ``rank`` maps each entry to its point's place in row-major
+    cell order (the order :meth:`query` answers in) and ``by_cell`` that order to the point indices."""
 
     def __init__(self, xy_m: np.ndarray, cos: np.ndarray, sin: np.ndarray, sign: np.ndarray | None = None,
                  cell_m: float = CELL_M) -> None:
@@ -71,7 +70,7 @@ class CellIndex:
         ends = np.cumsum(counts)
         #: each entry's place in row-major cell order (where :meth:`query` answers in that order)
         self.rank = np.repeat(first[run] - (ends - counts), counts) + np.arange(int(ends[-1]) if n else 0)
-        self.point = by_cell[self.rank]
+        self.by_cell = by_cell
         #: each entry's band × columns + column (for the binary search where no table is kept)
         self.key: np.ndarray | None = np.repeat(key, counts)
         # positions as complex numbers (one subtraction and one absolute value give the distances); cos, sin
@@ -134,7 +133,7 @@ class CellIndex:
         """The point index of the k-th entry of the slices' concatenation."""
         for a, b in sl:
             if k < b - a:
-                return int(self.point[a + k])
+                return int(self.by_cell[self.rank[a + k]])
             k -= b - a
         raise IndexError(k)
 
@@ -149,8 +148,8 @@ class CellIndex:
         dy = z.imag - y
         inside = np.flatnonzero(dx * dx + dy * dy <= radius_m * radius_m)
         rank = self.gather(self.rank, sl)[inside]
-        order = rank.argsort()
-        return self.gather(self.point, sl)[inside][order]
+        rank.sort()
+        return self.by_cell[rank]
 
 
 def _take_rows(rows, index: np.ndarray) -> np.ndarray:

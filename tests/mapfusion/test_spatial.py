@@ -26,7 +26,7 @@ def test_cell_query_is_every_point_within_the_radius(n, x, y, radius, seed, cell
     yaw = rng.uniform(-math.pi, math.pi, n)
     idx = CellIndex(xy, np.cos(yaw), np.sin(yaw), cell_m=cell)
     if not table:  # the binary search a sparse map's index uses in place of the table
-        idx.key = np.searchsorted(np.array(idx._start), np.arange(len(idx.point)), "right") - 1
+        idx.key = np.searchsorted(np.array(idx._start), np.arange(len(idx.rank)), "right") - 1
         idx._start = None
     got = idx.query(x, y, radius)
     want = np.flatnonzero((xy[:, 0] - x) ** 2 + (xy[:, 1] - y) ** 2 <= radius * radius)
@@ -42,13 +42,14 @@ def test_every_point_is_in_the_bands_of_its_row_and_the_two_rows_before(n, seed,
     xy = rng.uniform(0, 120, (n, 2))
     idx = CellIndex(xy, np.ones(n), np.zeros(n), cell_m=cell)
     row = np.floor((xy[:, 1] - xy[:, 1].min()) / cell).astype(int)
-    key = idx.key if idx.key is not None else np.searchsorted(np.array(idx._start), np.arange(len(idx.point)), "right") - 1
+    key = idx.key if idx.key is not None else np.searchsorted(np.array(idx._start), np.arange(len(idx.rank)), "right") - 1
     band = key // idx.ncol
+    point = idx.by_cell[idx.rank]
     for i in range(n):
-        assert sorted(band[idx.point == i].tolist()) == [b for b in (row[i] - 2, row[i] - 1, row[i]) if b >= 0]
+        assert sorted(band[point == i].tolist()) == [b for b in (row[i] - 2, row[i] - 1, row[i]) if b >= 0]
     assert np.all(np.diff(key) >= 0)  # bands, then columns, in order
-    assert np.array_equal(idx.z.real, xy[idx.point, 0]) and np.array_equal(idx.z.imag, xy[idx.point, 1])
-    assert np.array_equal(idx.block[0], np.ones(len(idx.point))) and np.array_equal(idx.block[2], -np.ones(len(idx.point)))
+    assert np.array_equal(idx.z.real, xy[point, 0]) and np.array_equal(idx.z.imag, xy[point, 1])
+    assert np.array_equal(idx.block[0], np.ones(len(point))) and np.array_equal(idx.block[2], -np.ones(len(point)))
 
 
 def test_a_sparse_map_uses_the_binary_search_and_answers_the_same():
