@@ -16,6 +16,11 @@ fast_clip = getattr(getattr(getattr(np, "_core", None), "umath", None), "clip", 
     lambda v, lo, hi, out=None: np.maximum(np.minimum(v, hi, out=out), lo, out=out))
 
 
+def as_complex(xy_m: np.ndarray) -> np.ndarray:
+    """Positions (n, 2) as complex numbers x + iy (n,): a view where the array is contiguous float64."""
+    return np.ascontiguousarray(xy_m, dtype=np.float64).reshape(-1, 2).view(np.complex128).reshape(-1)
+
+
 def wrap_angle(angle_rad):
     """Wrap an angle (or array of angles) into [-pi, pi): (a + π) mod 2π − π."""
     t = np.asarray(angle_rad) + np.pi

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .geometry import fast_clip
+from .geometry import as_complex, fast_clip
 
 if TYPE_CHECKING:
     from .roadmap import RoadMap
@@ -183,11 +183,6 @@ def lateral_bound_ok(m: Match, pose_matrix: np.ndarray, width_m: float, centre_m
     roll = math.atan2(float(pose_matrix[2, 1]), float(pose_matrix[2, 2]))
     lat = math.cos(roll) * m.signed_lateral_m + math.sin(roll) * math.sin(pitch) * m.longitudinal_m
     return abs(lat - centre_m) <= width_m - 1e-9 * (1.0 + width_m + abs(m.longitudinal_m) + abs(centre_m))
-
-
-def as_complex(xy: np.ndarray) -> np.ndarray:
-    """Positions (n, 2) as complex numbers x + iy (n,): a view where the array is contiguous float64."""
-    return np.ascontiguousarray(xy, dtype=np.float64).reshape(-1, 2).view(np.complex128).reshape(-1)
 
 
 def _best(pz: np.ndarray, c: np.ndarray, s: np.ndarray, sign: np.ndarray, x: float, y: float,

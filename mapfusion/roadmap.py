@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from .errors import ConfigError, MapFileError, MapMismatchError
 from . import matcher as _matcher
 from . import polylines
-from .geometry import wrap_angle
+from .geometry import as_complex, wrap_angle
 from .osm import DRIVABLE_HIGHWAYS, OsmWay, check_osm_path, read_drivable_ways
 from .projection import LocalProjection
 from .spatial import CellIndex
@@ -169,7 +169,7 @@ class RoadMap:
 
         self.xy_m = np.ascontiguousarray(arrays["xy_m"], dtype=np.float64)
         #: the way-points' positions as complex numbers x + iy (a view of ``xy_m``: the matcher's distances)
-        self.xy_complex = self.xy_m.view(np.complex128).reshape(-1)
+        self.xy_complex = as_complex(self.xy_m)
         self.yaw_rad = arrays["yaw_rad"]
         self.s_m = arrays["s_m"]
         self.way_index = arrays["way_index"]

@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 
+from .geometry import as_complex
+
 #: Side of a cell (m): the matcher's default radius, so a query of that radius is one band's slice.
 CELL_M = 20.0
 #: The rows of cells a band holds (its own and the next two).
@@ -51,8 +53,8 @@ class CellIndex:
         cell = cell[by_cell]
         sign = np.full(n, -1.0) if sign is None else np.asarray(sign, dtype=float)
         # (row by row into one array: numpy's 2-D fancy indexing is several times slower at this size)
-        in_cells = _take_rows((xy[:, 0], xy[:, 1], np.asarray(cos, dtype=float), np.asarray(sin, dtype=float), sign),
-                              by_cell)
+        in_cells = _take_rows((np.asarray(cos, dtype=float), np.asarray(sin, dtype=float), sign), by_cell)
+        z_in_cells = as_complex(xy).take(by_cell)
         # every non-empty cell (r, c) is part of bands r - 2, r - 1 and r: those (band, column, row) triples in
         # order, each standing for its cell's run of points in cell order
         first = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]]) if n else np.zeros(0, dtype=np.intp)
@@ -76,8 +78,8 @@ class CellIndex:
         # positions as complex numbers (one subtraction and one absolute value give the distances); cos, sin
         # and sign as the rows of one array: a query takes one slice of every row at once, and each quantity
         # stays contiguous for numpy's loops
-        self.z = _take_rows(in_cells[:2], self.rank).T.copy().view(np.complex128).reshape(-1)
-        self.block = _take_rows(in_cells[2:], self.rank)
+        self.z = z_in_cells.take(self.rank)
+        self.block = _take_rows(in_cells, self.rank)
         cells = self.ncol * self.nrow
         self._start: array.array | None = None  # (compact: a query's look-ups stay in few cache lines)
         if cells <= max(DENSE_CELLS_PER_POINT * n, DENSE_CELLS_MIN):

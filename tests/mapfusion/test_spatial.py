@@ -12,7 +12,8 @@ from hypothesis import given
 from hypothesis.extra import numpy as hnp
 from hypothesis import strategies as st
 
-from mapfusion.matcher import Match, _clip, as_complex, lateral_bound_ok, map_pose, match, match_candidates, match_range
+from mapfusion.geometry import as_complex
+from mapfusion.matcher import Match, _clip, lateral_bound_ok, map_pose, match, match_candidates, match_range
 from mapfusion.spatial import CellIndex
 
 angles = st.floats(-math.pi, math.pi)
@@ -42,7 +43,8 @@ def test_every_point_is_in_the_bands_of_its_row_and_the_two_rows_before(n, seed,
     xy = rng.uniform(0, 120, (n, 2))
     idx = CellIndex(xy, np.ones(n), np.zeros(n), cell_m=cell)
     row = np.floor((xy[:, 1] - xy[:, 1].min()) / cell).astype(int)
-    key = idx.key if idx.key is not None else np.searchsorted(np.array(idx._start), np.arange(len(idx.rank)), "right") - 1
+    entries = np.arange(len(idx.rank))
+    key = idx.key if idx.key is not None else np.searchsorted(np.array(idx._start), entries, "right") - 1
     band = key // idx.ncol
     point = idx.by_cell[idx.rank]
     for i in range(n):
