@@ -69,6 +69,8 @@ def test_dask_local_cluster_gives_the_process_pool_results():
     local = run_many(scs, workers=2)
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         remote = run_many(scs, scheduler=cluster.scheduler_address)
+    assert len(local) == len(remote) == len(scs)
+    assert [a["scenario"] for a in local] == [b["scenario"] for b in remote]
     for a, b in zip(local, remote):
         assert "error" not in a and "error" not in b, (a.get("error"), b.get("error"))
         for k in METRIC_KEYS:

@@ -156,16 +156,25 @@ def test_between_parallel_roads_the_nearer_wins(tmp_path, heading, gap, frac, ya
 finite = st.floats(allow_nan=False, allow_infinity=False)
 
 
-@given(x=st.floats(-1e5, 1e5), y=st.floats(-1e5, 1e5), yaw=finite, w=st.floats(0.0, 100.0), radius=st.floats(0.01, 1e4))
-def test_no_nan_and_angle_in_range(x, y, yaw, w, radius):
+@given(fx=st.floats(-0.2, 1.2), fy=st.floats(-0.2, 1.2), yaw=finite, w=st.floats(0.0, 100.0),
+       radius=st.floats(0.01, 300.0))
+def test_no_nan_and_angle_in_range(fx, fy, yaw, w, radius):
+    """Anywhere in and around the grid (its box and a fifth of it beyond each side): a match exactly when a
+    way-point lies within the radius, and every field of it finite and in range."""
     road = _grid()
+    lo, hi = road.xy_m.min(axis=0), road.xy_m.max(axis=0)
+    x, y = lo + np.array([fx, fy]) * (hi - lo)
     m = road.match(x, y, yaw, radius=radius, angle_weight_m_per_deg=w)
-    if m is None:
+    nearest = float(np.min(np.hypot(road.xy_m[:, 0] - x, road.xy_m[:, 1] - y)))
+    assume(abs(nearest - radius) > 1e-6)  # (a way-point on the circle itself: either answer is right)
+    if nearest > radius:
+        assert m is None
         return
+    assert m is not None
     for v in (m.x_m, m.y_m, m.yaw_rad, m.lateral_m, m.longitudinal_m, m.along_m, m.distance_m, m.angle_deg, m.cost):
         assert math.isfinite(v)
     assert 0.0 <= m.angle_deg <= 180.0
-    assert m.distance_m <= radius + 1e-9
+    assert nearest - 1e-9 <= m.distance_m <= radius + 1e-9
 
 
 @given(a=st.floats(-1e6, 1e6), b=st.floats(-1e6, 1e6))

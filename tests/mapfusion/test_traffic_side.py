@@ -76,12 +76,12 @@ def test_the_band_is_centred_on_the_driving_side_of_a_two_way_road(tmp_path_fact
         assert _across_of(factor, road, westward) == pytest.approx(centre + math.copysign(width, off), abs=1e-6)
 
 
-@given(lateral=st.floats(-15.0, 15.0), westward=st.booleans())
-def test_a_one_way_road_keeps_its_centre_line(tmp_path_factory, lateral, westward):
+@given(lateral=st.floats(-15.0, 15.0))
+def test_a_one_way_road_keeps_its_centre_line(tmp_path_factory, lateral):
+    """Driven along its direction (east), a one-way road's band is centred on its centre line."""
     road = _road(tmp_path_factory, oneway=True, lanes=2)
     cfg = FusionConfig(traffic_side=TrafficSide.right, prior_spacing_m=0.0)
-    westward = False  # (a one-way road heading east: driving it westward is another matter)
-    assoc, (m, factor) = _prior(road, cfg, lateral, westward)
+    assoc, (m, factor) = _prior(road, cfg, lateral, False)
     width = 2 * cfg.lane_width_m
     assert m is not None and assoc.side_m(m) == 0.0
     if abs(abs(lateral) - width) > 1e-6:
