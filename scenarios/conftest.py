@@ -1,7 +1,11 @@
 """pytest scenarios/: families run once per session (two worker processes), each run a test case.
 
-``--update-baselines`` rewrites scenarios/baselines.json from this session's results; nothing
-else ever writes it. The paper-style table of every family is printed at the end.
+``--update-baselines`` rewrites scenarios/baselines.json from this session's results (nothing else ever
+writes it): it prints each family's change (mean ATE, de-localised, worst run against odometry) and refuses
+a family that got worse unless it is named with ``--accept-worse FAMILY``. ``scenarios/noise_floor.json``
+(``mapfusion noise``) gives the regression checks their tolerances. ``--engine-param KEY=VALUE`` fuses
+every run with that engine parameter changed (an injected regression must fail the checks). The
+paper-style table of every family is printed at the end.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import pytest
 HERE = Path(__file__).resolve().parent
 FAMILIES = HERE / "families"
 BASELINES = HERE / "baselines.json"
+NOISE_FLOOR = HERE / "noise_floor.json"
 _RESULTS: dict[str, dict[str, dict]] = {}
 #: Text tables a test leaves for the end-of-session summary (the realism table), by title.
 REPORTS: dict[str, list[str]] = {}
@@ -24,6 +29,10 @@ def pytest_addoption(parser):
     parser.addoption("--update-baselines", action="store_true", default=False,
                      help="rewrite scenarios/baselines.json from this run's results")
     parser.addoption("--scenario-workers", type=int, default=2, help="worker processes for the family runs")
+    parser.addoption("--accept-worse", action="append", default=[], metavar="FAMILY",
+                     help="with --update-baselines: record this family even though it got worse (repeatable)")
+    parser.addoption("--engine-param", action="append", default=[], metavar="KEY=VALUE",
+                     help="fuse every run with this engine (FusionConfig) parameter changed (repeatable)")
 
 
 def family_group(name: str) -> str:
@@ -39,13 +48,43 @@ def family_results(config, name: str) -> dict[str, dict]:
         from sim.scenario import load_family
 
         fam = load_family(FAMILIES / f"{name}.toml")
-        rows = run_many(list(fam.scenarios), workers=config.getoption("--scenario-workers"))
+        scenarios = list(fam.scenarios)
+        params = engine_params(config)
+        if params:
+            import dataclasses
+
+            from mapfusion.harness.sweep import with_params
+
+            scenarios = [dataclasses.replace(sc, mapfusion=with_params(sc.mapfusion, params, "--engine-param"))
+                         for sc in scenarios]
+        rows = run_many(scenarios, workers=config.getoption("--scenario-workers"))
         _RESULTS[name] = {r["scenario"]: r for r in rows}
     return _RESULTS[name]
 
 
+def engine_params(config) -> dict:
+    """``--engine-param KEY=VALUE`` options as a [mapfusion] table (values parsed as TOML values)."""
+    import tomllib
+
+    out = {}
+    for spec in config.getoption("--engine-param"):
+        key, sep, value = spec.partition("=")
+        if not sep:
+            raise pytest.UsageError(f"--engine-param {spec!r}: expected KEY=VALUE")
+        try:
+            out[key.strip()] = tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[key.strip()] = value
+    return out
+
+
 def load_baselines() -> dict:
     return json.loads(BASELINES.read_text()) if BASELINES.exists() else {}
+
+
+def load_noise_floor() -> dict[str, dict]:
+    """The noise floor's entry of every run (empty without scenarios/noise_floor.json)."""
+    return json.loads(NOISE_FLOOR.read_text()).get("runs", {}) if NOISE_FLOOR.exists() else {}
 
 
 def _is_worker(config) -> bool:
@@ -70,13 +109,17 @@ def pytest_sessionfinish(session, exitstatus):
         session.config.workeroutput["scenario_reports"] = json.dumps(REPORTS)
         return
     if session.config.getoption("--update-baselines") and _RESULTS:
-        data = load_baselines()
-        for fam in _RESULTS.values():
-            for name, r in fam.items():
-                if "error" not in r:
-                    data[name] = {k: r[k] for k in ("ate_odometry_m", "ate_mapfusion_m", "delocalized_odometry",
-                                                    "delocalized_mapfusion", "match_rate")}
-        BASELINES.write_text(json.dumps(dict(sorted(data.items())), indent=1) + "\n")
+        from mapfusion.harness.regression import rerecord
+
+        if engine_params(session.config):
+            REPORTS["baselines"] = ["not re-recorded: --engine-param changes the engine"]
+            return
+        data, report, refused = rerecord(load_baselines(), _RESULTS, load_noise_floor(),
+                                         set(session.config.getoption("--accept-worse")))
+        BASELINES.write_text(json.dumps(data, indent=1) + "\n")
+        REPORTS["baselines"] = report
+        if refused:
+            session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus, config):

@@ -1,8 +1,10 @@
 """The scenario families: every run against its recorded baseline, and the method's claims per family.
 
-Regression rule per run (issue 8): Map-Fusion's ATE may not exceed its baseline by more than
-max(0.25 m, 10%); no de-localisation where the baseline had none; the match rate may not drop by
-more than 1 point. Claims (the paper's): rain and heavy rain reduce the mean ATE by at least 40%;
+Regression checks (mapfusion.harness.regression), with tolerances from each run's measured noise floor
+(scenarios/noise_floor.json, written by ``mapfusion noise``): per run, Map-Fusion's ATE within twice
+the range of its noise-floor fusions of its baseline, no new de-localisation, the match rate within a
+point; per family, the mean ATE, the de-localised count and the worst run against the odometry within
+twice their own noise-floor range (at least 1% of the mean, 0.05 m). Claims (the paper's): rain and heavy rain reduce the mean ATE by at least 40%;
 in clear weather Map-Fusion is never worse than odometry by more than 0.3 m; at intersections the
 match rate is at least 97%. Claims the engine does not meet yet are strict expected failures with
 the measured figure, so that meeting them is noticed.
@@ -15,7 +17,9 @@ import pytest
 
 from sim.scenario import load_family
 
-from .conftest import FAMILIES, family_group, family_results, load_baselines
+from mapfusion.harness.regression import check_family, check_run
+
+from .conftest import FAMILIES, family_group, family_results, load_baselines, load_noise_floor
 
 pytestmark = pytest.mark.sumo
 
@@ -55,12 +59,25 @@ def test_run_does_not_regress(request, family, run):
         return
     base = load_baselines().get(run)
     assert base is not None, f"no recorded baseline for {run}: run pytest scenarios --update-baselines"
-    limit = base["ate_mapfusion_m"] + max(0.25, 0.10 * base["ate_mapfusion_m"])
-    assert r["ate_mapfusion_m"] <= limit, f"ATE {r['ate_mapfusion_m']:.2f} m > {limit:.2f} m (baseline {base['ate_mapfusion_m']:.2f})"
-    if not base["delocalized_mapfusion"]:
-        assert not r["delocalized_mapfusion"], "de-localised where the baseline was not"
-    if base.get("match_rate") is not None and r.get("match_rate") is not None:
-        assert r["match_rate"] >= base["match_rate"] - 0.01, f"match rate {r['match_rate']:.3f} < {base['match_rate']:.3f} − 1 point"
+    problems = check_run(r, base, load_noise_floor().get(run))
+    assert not problems, "; ".join(problems)
+
+
+_FAMILY_PARAMS = [pytest.param(f, id=f, marks=[family(f)] + ([pytest.mark.full] if f in FULL_NAMES else []))
+                  for f in FAMILY_NAMES + FULL_NAMES]
+
+
+@pytest.mark.parametrize("name", _FAMILY_PARAMS)
+def test_family_does_not_regress(request, name):
+    """The family's mean ATE, de-localised count and worst run against the odometry, against its baselines
+    and within its noise floor's spread: the shift of a few percent that no single run's tolerance sees."""
+    rows = [r for r in family_results(request.config, name).values() if "error" not in r]
+    if request.config.getoption("--update-baselines"):
+        return
+    if not rows:
+        pytest.skip(f"no run of {name} can be made here")
+    problems = check_family(rows, load_baselines(), load_noise_floor())
+    assert not problems, "; ".join(problems)
 
 
 def _ok(request, family):
@@ -94,7 +111,7 @@ def test_clear_never_worse_by_more_than_0_3_m(request):
 
 
 @family("intersections")
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-27 (session 41, steps along the heading and heading priors): "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="measured 2026-11-27 (session 41, steps along the heading and heading priors): "
                    "96.97%; 2026-11-26 (session 36, the learned odometry σ on): 96.8% "
                    "(unchanged); 2026-11-26 (session 33, split ways no rivals for the ambiguity gate): "
                    "96.8% (the SUMO Helsinki runs 85.2% and 72.3%); 2026-11-24 (planar steps on the local "
@@ -137,7 +154,7 @@ def test_real_odometry_30_percent_better_on_average(request):
 
 
 @family("rain-tunnel")
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-27 (session 41, steps along the heading and heading priors): "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="measured 2026-11-27 (session 41, steps along the heading and heading priors): "
                    "the zones' mean error 5.01 m (2.0–10.4 m; Andorra seed 2 10.4 m), none de-localised, ATE of the "
                    "six vo+wheel runs 8.93 → 3.60 m; 2026-11-24 (planar steps on the local horizontal, the GPS gate opened "
                    "after an odometry outage): no vo+wheel run de-localises now (2026-11-23: Andorra seed 1, 24.9 m), "
@@ -173,7 +190,7 @@ def test_kidnapped_runs_are_relocalised_within_500_m(request):
 
 
 @family("kidnapped")
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-25 (session 26): mean online error after re-localisation "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="measured 2026-11-25 (session 26): mean online error after re-localisation "
                    "6.9 m over this family (6.2–8.0 m a run: the engine tracks after the search as after a GPS "
                    "initialisation, its along-road error 5–12 m between junctions); no run here re-anchored wrong; "
                    "over seeds 1–30 7 of 120 runs wrong, the longest 1,238 m (a wrong convergence the watch does not "

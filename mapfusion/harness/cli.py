@@ -1030,6 +1030,67 @@ def demo(
 
 
 @app.command()
+def noise(
+    paths: Annotated[list[Path], typer.Argument(help="Scenario or family TOML files.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="The noise-floor JSON to write; the runs of these families "
+                                      "replace theirs in it when it exists (scenarios/noise_floor.json: the one the "
+                                      "regression checks read).")],
+    draws: Annotated[int, typer.Option("--draws", min=0, max=50, help="Perturbed fusions a run, each with every "
+                                       "input value multiplied by 1 + REL·N(0,1).")] = 5,
+    rel: Annotated[float, typer.Option("--rel", min=0.0, max=1e-6, help="Relative size of the perturbation.")] = 1e-12,
+    other_code_paths: Annotated[bool, typer.Option("--code-paths/--no-code-paths", help="Also fuse each run's own "
+                                                   "inputs under other math-library code paths (GLIBC_TUNABLES, "
+                                                   "NPY_DISABLE_CPU_FEATURES), each in a fresh process.")] = True,
+    workers: Annotated[Optional[int], typer.Option("--workers", "-j", min=1,
+                                                   help="Runs at a time (default: the CPU count).")] = None,
+) -> None:
+    """The noise floor of scenario families: each run simulated once, then fused on its own inputs, on
+    inputs perturbed at the last bits (seeded) and under other math-library code paths; per run the
+    range of its Map-Fusion ATE. The regression checks of `pytest scenarios/` take their tolerances from
+    it."""
+    from sim.scenario import load_family
+
+    import numpy as np
+
+    from .noise import PERTURB_REL, code_paths, measure, measure_under, summarise
+
+    _check_output_file(out, "--out", {str(p): p for p in paths})
+    scenarios = _load_runs(paths)
+    families = {sc.name: fam.name for p in paths for fam in [load_family(p)] for sc in fam.scenarios}
+    n = workers or _default_workers()
+    with _RunBar(len(scenarios), "runs") as bar:
+        rows = measure(scenarios, draws=draws, rel=rel or PERTURB_REL, workers=n,
+                       on_rows=lambda rs: bar.advance(any("error" in r for r in rs)))
+    other: dict[str, list[dict]] = {}
+    if other_code_paths:
+        for name, env in code_paths().items():
+            with err_console.status(f"fusing under the {name} code path ({', '.join(f'{k}={v}' for k, v in env.items())})"):
+                other[name] = measure_under(env, paths, n)
+    doc = summarise(rows, other, families, rel, draws)
+    if out.exists():
+        try:
+            old = json.loads(out.read_text())
+        except ValueError:
+            _fail(f"--out {out}: not a noise-floor JSON file")
+        doc["runs"] = dict(sorted({**old.get("runs", {}), **doc["runs"]}.items()))
+    out.write_text(json.dumps(doc, indent=1) + "\n")
+    t = Table(title=f"noise floor: Map-Fusion ATE over {draws} perturbed draws"
+                    + (f" and {len(other)} code paths" if other else "") + f" → {out}")
+    for c in ("family", "runs", "median spread", "max spread", "max range (m)", "de-localisation flips", "failed"):
+        t.add_column(c, justify="right")
+    by_family: dict[str, list[dict]] = {}
+    for name in {r["scenario"] for r in rows}:
+        by_family.setdefault(families.get(name, "?"), []).append(doc["runs"][name])
+    for fam, es in sorted(by_family.items()):
+        ok = [e for e in es if "spread" in e]
+        sp = [e["spread"] for e in ok]
+        t.add_row(fam, str(len(es)), f"{100 * float(np.median(sp)):.2f}%" if sp else "–",
+                  f"{100 * max(sp):.2f}%" if sp else "–", f"{max(e['range_m'] for e in ok):.3f}" if ok else "–",
+                  str(sum(e["delocalized_flips"] for e in ok)), str(len(es) - len(ok)))
+    console.print(t)
+
+
+@app.command()
 def bench(
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object a line, `benchmark` names it.")] = False,
     duration_s: Annotated[float, typer.Option("--duration-s", min=60.0, help="Length of the engine's synthetic drive, "
