@@ -51,12 +51,9 @@ def family_results(config, name: str) -> dict[str, dict]:
         scenarios = list(fam.scenarios)
         params = engine_params(config)
         if params:
-            import dataclasses
+            from mapfusion.harness.noise import with_engine_params
 
-            from mapfusion.harness.sweep import with_params
-
-            scenarios = [dataclasses.replace(sc, mapfusion=with_params(sc.mapfusion, params, "--engine-param"))
-                         for sc in scenarios]
+            scenarios = with_engine_params(scenarios, params, "--engine-param")
         rows = run_many(scenarios, workers=config.getoption("--scenario-workers"))
         _RESULTS[name] = {r["scenario"]: r for r in rows}
     return _RESULTS[name]
@@ -64,18 +61,12 @@ def family_results(config, name: str) -> dict[str, dict]:
 
 def engine_params(config) -> dict:
     """``--engine-param KEY=VALUE`` options as a [mapfusion] table (values parsed as TOML values)."""
-    import tomllib
+    from mapfusion.harness.noise import parse_params
 
-    out = {}
-    for spec in config.getoption("--engine-param"):
-        key, sep, value = spec.partition("=")
-        if not sep:
-            raise pytest.UsageError(f"--engine-param {spec!r}: expected KEY=VALUE")
-        try:
-            out[key.strip()] = tomllib.loads(f"v = {value}")["v"]
-        except tomllib.TOMLDecodeError:
-            out[key.strip()] = value
-    return out
+    try:
+        return parse_params(config.getoption("--engine-param"))
+    except ValueError as exc:
+        raise pytest.UsageError(f"--engine-param {exc}") from None
 
 
 def load_baselines() -> dict:

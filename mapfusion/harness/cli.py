@@ -1043,6 +1043,8 @@ def noise(
                                                    "NPY_DISABLE_CPU_FEATURES), each in a fresh process.")] = True,
     workers: Annotated[Optional[int], typer.Option("--workers", "-j", min=1,
                                                    help="Runs at a time (default: the CPU count).")] = None,
+    param: Annotated[Optional[list[str]], typer.Option("--param", "-p", help="KEY=VALUE: an engine (FusionConfig) "
+                                                       "parameter changed for every run, repeatable.")] = None,
 ) -> None:
     """The noise floor of scenario families: each run simulated once, then fused on its own inputs, on
     inputs perturbed at the last bits (seeded) and under other math-library code paths; per run the
@@ -1052,10 +1054,17 @@ def noise(
 
     import numpy as np
 
-    from .noise import PERTURB_REL, code_paths, measure, measure_under, summarise
+    from .noise import PERTURB_REL, code_paths, measure, measure_under, parse_params, summarise, with_engine_params
 
     _check_output_file(out, "--out", {str(p): p for p in paths})
     scenarios = _load_runs(paths)
+    try:
+        params = parse_params(param or [])
+        scenarios = with_engine_params(scenarios, params) if params else scenarios
+    except InputError as exc:
+        _fail(str(exc))
+    except ValueError as exc:
+        _fail(f"--param {exc}")
     families = {sc.name: fam.name for p in paths for fam in [load_family(p)] for sc in fam.scenarios}
     n = workers or _default_workers()
     with _RunBar(len(scenarios), "runs") as bar:
@@ -1065,7 +1074,7 @@ def noise(
     if other_code_paths:
         for name, env in code_paths().items():
             with err_console.status(f"fusing under the {name} code path ({', '.join(f'{k}={v}' for k, v in env.items())})"):
-                other[name] = measure_under(env, paths, n)
+                other[name] = measure_under(env, paths, n, param or [])
     doc = summarise(rows, other, families, rel, draws)
     if out.exists():
         try:

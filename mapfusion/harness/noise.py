@@ -61,6 +61,30 @@ def code_paths() -> dict[str, dict[str, str]]:
     return paths
 
 
+def parse_params(specs: Iterable[str]) -> dict:
+    """``KEY=VALUE`` strings as a [mapfusion] table, each value read as a TOML value (else kept a string);
+    ValueError on a spec without ``=``."""
+    import tomllib
+
+    out = {}
+    for spec in specs:
+        key, sep, value = spec.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"{spec!r}: expected KEY=VALUE")
+        try:
+            out[key.strip()] = tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[key.strip()] = value
+    return out
+
+
+def with_engine_params(scenarios: Iterable[Scenario], params: dict, where: str = "--param") -> list[Scenario]:
+    """The scenarios with these engine parameters changed (a ConfigError names a bad one)."""
+    from .sweep import with_params
+
+    return [dataclasses.replace(sc, mapfusion=with_params(sc.mapfusion, params, where)) for sc in scenarios]
+
+
 def _times(a: np.ndarray, rng: np.random.Generator, rel: float) -> np.ndarray:
     a = np.asarray(a, dtype=float)
     return a * (1.0 + rel * rng.standard_normal(a.shape))
@@ -133,13 +157,13 @@ def measure(scenarios: list[Scenario], draws: int = 5, rel: float = PERTURB_REL,
     return out
 
 
-def measure_under(env: dict[str, str], family_paths: list[Path], workers: int) -> list[dict]:
+def measure_under(env: dict[str, str], family_paths: list[Path], workers: int, params: list[str] = ()) -> list[dict]:
     """The unperturbed fusions (draw 0) of the families' runs in a fresh Python process whose environment
     adds ``env`` (a code path is picked when a library loads: it cannot be changed inside this process)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "rows.json"
         cmd = [sys.executable, "-m", "mapfusion.harness.noise", "--draws", "0", "--workers", str(workers),
-               "--rows", str(out), *map(str, family_paths)]
+               "--rows", str(out), *[a for p in params for a in ("--param", p)], *map(str, family_paths)]
         subprocess.run(cmd, env={**os.environ, **env}, check=True)
         return json.loads(out.read_text())
 
@@ -211,8 +235,11 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument("--draws", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--rows", type=Path, required=True)
+    ap.add_argument("--param", action="append", default=[])
     a = ap.parse_args(argv)
     scenarios = [sc for p in a.families for sc in load_family(p).scenarios]
+    if a.param:
+        scenarios = with_engine_params(scenarios, parse_params(a.param))
     rows = measure(scenarios, draws=a.draws, workers=a.workers)
     a.rows.write_text(json.dumps(rows))
     return 0
