@@ -62,6 +62,7 @@ def test_a_torn_last_line_is_ignored(tmp_path):
     assert p.read_text().endswith('"x"\n{"scenario": "c"}\n')
 
 
+@pytest.mark.slow
 def test_dask_local_cluster_gives_the_process_pool_results():
     from dask.distributed import LocalCluster
 

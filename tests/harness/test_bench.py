@@ -24,6 +24,7 @@ def _median(xs):
     return xs[n // 2] if n % 2 else 0.5 * (xs[n // 2 - 1] + xs[n // 2])
 
 
+@pytest.mark.slow
 def test_bench_lines_carry_their_anchors_and_ratios(tmp_path, monkeypatch):
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     rows = {r["benchmark"]: r for r in run_benchmarks(duration_s=300.0, city_km=(2.0, 2.0), repeats=3)}
@@ -135,6 +136,7 @@ def test_on_a_map_of_two_way_roads_the_drive_turns_every_way_and_back_only_at_de
     assert turns["straight"] > 0 and turns["left"] > 0 and turns["right"] > 0, turns
 
 
+@pytest.mark.slow
 def test_the_bench_measures_a_map_given_in_place_of_the_synthetic_city():
     """``mapfusion bench --map helsinki``: every line is measured on the bundled Helsinki map, and says so."""
     rows = {r["benchmark"]: r for r in run_benchmarks(duration_s=200.0, repeats=1, map_path="helsinki")}

@@ -24,6 +24,7 @@ def test_a_drive_with_no_kidnap_has_no_bound():
         kidnapped_bound(_kidnapped("none"))
 
 
+@pytest.mark.slow
 def test_a_re_localised_kidnap_is_compared_with_the_truth_re_anchored_and_never_kidnapped():
     """Helsinki VO jump, seed 7 of the kidnapped set (a 30-300 m jump): found again within 500 m. Re-anchored
     on the true pose where the after-error starts counting, and never kidnapped: the last must really be free of

@@ -31,6 +31,7 @@ def test_isam2_with_cholesky_survives_a_failed_update():
 
 
 
+@pytest.mark.slow
 def test_a_scale_fit_bent_by_drift_does_not_replace_the_windows_median():
     """rain40-helsinki-vo-s8: rain drift inside the 120 s GPS window bends the odometry so that the
     least-squares similarity fit reads a 5% scale error where the windows' median is right (the

@@ -24,6 +24,7 @@ def _family(tmp_path, seeds="1, 2", weather="rain"):
     return p
 
 
+@pytest.mark.slow
 def test_sweep_simulates_each_scenario_once_and_resumes(tmp_path):
     fam = _family(tmp_path)
     out = tmp_path / "sw"
@@ -94,6 +95,7 @@ def test_sweep_bad_params_exit_2(tmp_path, param, needle):
     assert r.exit_code == 2 and needle in r.stderr
 
 
+@pytest.mark.slow
 def test_tune_improves_on_a_deliberately_bad_start_and_resumes(tmp_path):
     import optuna
 
@@ -125,6 +127,7 @@ def _open_after(url: str, barrier, results) -> None:
         results.put(f"{type(exc).__name__}: {exc}")
 
 
+@pytest.mark.slow
 def test_processes_opening_a_new_study_database_at_once_all_succeed(tmp_path):
     """Several tunes (or a tune and a reader) opening one new SQLite study at once each create its
     tables; without a second look all but one fail with 'table ... already exists' (measured: every

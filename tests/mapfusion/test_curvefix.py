@@ -50,6 +50,7 @@ def _fixes(road, cfg, x, y, yaw, dx, dy, t0_s=100.0, gps_t_s=-math.inf, drift_ra
     return out
 
 
+@pytest.mark.slow
 def test_curve_fixes_are_rarely_farther_than_the_separation_from_the_truth(road):
     """200 legal drives on Helsinki's roads (1.5 km, seeds 0-199), each estimate shifted by 3-12 m in a random
     direction: fixes come (at least 1,000), each with the configured σ, and at most 1% of them lie farther than
@@ -214,6 +215,7 @@ def test_no_curve_fix_for_an_estimate_that_keeps_to_its_roads(road):
     assert counters.curve_fixes_gated >= 1
 
 
+@pytest.mark.slow
 def test_curve_fixes_hold_a_drive_whose_scale_wandered_closer_to_the_truth(road):
     """The road fixes' test drives with the scale 3% off once GPS ends (heading drifting 2°/100 m), road fixes off:
     with curve fixes no drive's mean online error after GPS is worse by more than 0.5 m, and over the eight it is

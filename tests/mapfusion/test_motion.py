@@ -131,6 +131,7 @@ def _jumping_vo(truth, at: int, jump_m: float, axis: int = 1) -> np.ndarray:
     return poses
 
 
+@pytest.mark.slow
 def test_an_odometry_jump_the_speed_limit_misses_is_caught_by_wheel_and_gyro(grid):
     """A 4 m jump forwards in 0.1 s (50 m/s, under the jump guard's 70 m/s) is followed without wheel and gyro
     and replaced with them: the estimate ends where the same engine on the jump-free odometry ends. (Forwards: a
@@ -155,6 +156,7 @@ def test_an_odometry_jump_the_speed_limit_misses_is_caught_by_wheel_and_gyro(gri
     assert apart(end[4.0][1], end[0.0][1]) < 0.5
 
 
+@pytest.mark.slow
 def test_a_30_s_camera_outage_is_bridged_frame_by_frame(grid):
     """No odometry for 30 s (300 m), then a re-initialised odometry 20 m off: wheel and gyro make a
     frame every 0.1 s through the gap, the jump is not followed, and the estimate stays within 1% of the

@@ -205,6 +205,7 @@ def test_a_window_ending_in_a_standstill_places_the_heading_from_the_driving_bef
     assert err < 15.0, err
 
 
+@pytest.mark.slow
 def test_a_biased_window_on_parallel_streets_is_registered_only_when_asked(road):
     """Route 7's fixes, 150 m off diagonally, leave the estimate on parallel streets: it keeps to the roads, so by
     default GPS's silence registers nothing and the first map re-anchoring waits for the estimate to be called lost

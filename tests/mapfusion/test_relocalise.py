@@ -130,6 +130,7 @@ def _relocalise(road, seed, length_m, offset_m=300.0, radius_m=1000.0):
     return None
 
 
+@pytest.mark.slow
 def test_a_drives_shape_finds_it_in_a_1_km_region(road):
     """Legal drives over Helsinki's graph with a 2% scale error and 1°/100 m heading drift, each from a region
     of 1 km radius whose centre lies 300 m from the start: every one found within 1 km of driving, within 10 m
@@ -298,6 +299,7 @@ def _resumed_off(road, seed):
     return x, y, ox, oy, oyaw
 
 
+@pytest.mark.slow
 def test_a_vo_that_resumes_in_the_wrong_place_after_an_outage_is_found_again(road):
     """Four drives (Helsinki, GPS long gone when the VO resumes 120 m off): without map_relocalisation (and without
     the road fixes, which also act here) every one ends more than 50 m off; with it the gap starts a search and at
@@ -395,6 +397,7 @@ def test_a_search_after_a_gap_covers_a_vehicle_that_sped_up_in_it():
         assert (off < region.radius_m - 25.0) is inside and (off > region.radius_m) is not inside, (sigmas, off, region)
 
 
+@pytest.mark.slow
 def test_a_lost_search_over_scales_finds_a_vehicle_whose_odometry_changed_scale(road):
     """GPS for 40 s, then the odometry's scale jumps by 25% (a monocular VO's): the engine keeps the scale GPS
     measured, overshoots its turns and is lost. A lost search at that scale (reloc_lost_scale_factor 1) converges on
@@ -439,6 +442,7 @@ def _biased_window(road, seed: int, under_gps: bool, fixes_until_k: int):
     return _feed(road, cfg, x, y, ox, oy, oyaw, fixes_until_k, fix_offset=(106.0, 106.0))
 
 
+@pytest.mark.slow
 def test_a_search_beside_a_biased_gps_re_anchors_sooner_once_gps_falls_silent(road):
     """70 s of fixes all 150 m off, then none: the estimate may be lost long before GPS ends. With
     reloc_under_gps a search runs beside GPS from then, so it has driven further when GPS falls silent and
@@ -456,6 +460,7 @@ def test_a_search_beside_a_biased_gps_re_anchors_sooner_once_gps_falls_silent(ro
     assert earlier >= 20.0, earlier
 
 
+@pytest.mark.slow
 def test_a_search_begun_back_under_a_biased_gps_re_anchors_at_the_silence(road):
     """70 s of fixes all 150 m off, then none, on routes the map did not call lost under GPS: with
     reloc_gps_replay_m (250 m) the search begun at the silence has already been fed the last 250 m driven under the
@@ -483,6 +488,7 @@ def test_a_search_begun_back_under_a_biased_gps_re_anchors_at_the_silence(road):
     assert at_silence >= 3
 
 
+@pytest.mark.slow
 def test_a_map_re_anchoring_mends_the_path_its_search_matched(road):
     """The same biased window: with reloc_mend_back the final estimates of the frames the search matched (from
     its start to the re-anchoring) are moved with the re-anchoring, so they lie near the truth; without, they
@@ -1008,6 +1014,7 @@ def test_the_road_fit_is_the_on_road_share_of_the_last_window(frames, window_m):
             assert fit == pytest.approx(on_m / total, abs=1e-6)
 
 
+@pytest.mark.slow
 def test_gps_that_left_the_estimate_on_the_roads_gets_no_second_opinion(road):
     """reloc_gps_fit_min: 70 s of good fixes leave the estimate on the roads, so GPS's silence begins no search
     (which could only confirm it or, converging on a look-alike path, move it away: held-out 60-run set, Helsinki

@@ -59,6 +59,7 @@ def _drive(road: RoadMap, n: int, on_final=None, engines: list | None = None) ->
     return eng
 
 
+@pytest.mark.slow
 def test_a_streamed_drive_gives_the_same_estimates_in_bounded_memory(tmp_path):
     road = RoadMap.from_osm(write_osm(tmp_path, [(circle_road(300.0, n=180), {"highway": "primary", "lanes": "2"})]))
     n = 9000  # 900 s: beyond the history, so frames are handed out and forgotten on the way

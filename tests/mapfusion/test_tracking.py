@@ -56,6 +56,7 @@ def _run(road, cfg, x, y, ox, oy, oyaw, gps_frames):
     return eng, float(np.mean(errs)) if errs else math.nan, math.hypot(p.x() - x[-1], p.y() - y[-1])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("widths", [1.0, ON.road_fix_agree_widths])
 def test_road_fixes_hold_a_drive_whose_scale_wandered_after_gps(road, widths):
     """Four drives whose odometry's scale moves 20% from the one GPS measured once GPS ends: without road
@@ -242,6 +243,7 @@ def test_a_steady_start_waits_for_the_turn_to_end(road, why, turn_deg_per_m, str
     assert fixes.starts == 1
 
 
+@pytest.mark.slow
 def test_road_fixes_wait_while_a_search_runs(road):
     """With map_relocalisation and reloc_gps_fit_min 0 a search starts when GPS falls silent (a second opinion on
     where GPS left the estimate, here on the roads: the default would not search; begun at the silence, with no

@@ -126,6 +126,7 @@ def test_geo_conversion_equals_sumo(helsinki_net):
         ls.close()
 
 
+@pytest.mark.slow
 def test_background_traffic_slows_the_ego(helsinki, helsinki_net):
     alone = run_drive(_scenario(seed=5, duration_s=200.0), helsinki, helsinki_net)
     busy = run_drive(_scenario(seed=5, duration_s=200.0, traffic={"background_vehicles": 60, "fleet": True}),

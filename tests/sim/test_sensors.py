@@ -390,6 +390,7 @@ def test_turn_scale_error_matches_its_sigma():
     assert _sd_ok(err[:, 2], 0.05 * turned)
 
 
+@pytest.mark.slow
 def test_reverting_scale_wander_has_its_stationary_sigma():
     """With a correlation length L, the scale error settles to σ = q · √(L / 2) instead of growing
     without bound: read from the last step's length, 2 km (10 L) into the drive."""
@@ -402,6 +403,7 @@ def test_reverting_scale_wander_has_its_stationary_sigma():
     assert _sd_ok(np.array(last), q * math.sqrt(L / 2.0))
 
 
+@pytest.mark.slow
 def test_start_scale_bias_decays():
     """The start-up scale error has its σ on the first step and is gone after many decay lengths."""
     truth = synthetic_truth("straight", n=1501, speed_mps=10.0)  # 1.5 km in 1 m steps
