@@ -13,7 +13,7 @@ import pytest
 
 from mapfusion.harness.calibration import calibration_runs, summarise
 
-pytestmark = pytest.mark.sumo
+pytestmark = [pytest.mark.sumo, pytest.mark.slow]  # minutes of drives: pytest -m slow (CI)
 
 
 @pytest.fixture(scope="module")

@@ -25,6 +25,8 @@ pytestmark = pytest.mark.sumo
 
 FAMILY_NAMES = ("clear", "rain", "rain-tunnel", "heavy-rain", "intersections", "kitti", "kitti-real", "kitti-realism",
                 "kidnapped")
+# the families of the long KITTI drives (50 runs): `slow`, run by pytest -m slow (as CI does), not by default
+SLOW_FAMILIES = ("kitti", "kitti-realism")
 # the larger set: pytest -m full scenarios/ (kitti-real has one run per real odometry result: no larger set)
 FULL_NAMES = tuple(f"{f}-full" for f in FAMILY_NAMES if (FAMILIES / f"{f}-full.toml").exists())
 
@@ -35,13 +37,18 @@ def family(name: str) -> pytest.MarkDecorator:
     return pytest.mark.xdist_group(family_group(name))
 
 
+def _marks(fam: str) -> list:
+    return ([family(fam)] + ([pytest.mark.full] if fam in FULL_NAMES else [])
+            + ([pytest.mark.slow] if fam in SLOW_FAMILIES else []))
+
+
 def _runs():
     """Every run of every family; a run whose real data is not available here ($MAPFUSION_DATA unset)
     is skipped, saying so."""
     out = []
     for fam in FAMILY_NAMES + FULL_NAMES:
         loaded = load_family(FAMILIES / f"{fam}.toml")
-        marks = [family(fam)] + ([pytest.mark.full] if fam in FULL_NAMES else [])
+        marks = _marks(fam)
         out += [pytest.param(fam, sc.name, id=sc.name, marks=marks) for sc in loaded.scenarios]
         out += [pytest.param(fam, name, id=name, marks=marks + [pytest.mark.skip(reason=why)])
                 for name, why in loaded.unavailable]
@@ -63,8 +70,7 @@ def test_run_does_not_regress(request, family, run):
     assert not problems, "; ".join(problems)
 
 
-_FAMILY_PARAMS = [pytest.param(f, id=f, marks=[family(f)] + ([pytest.mark.full] if f in FULL_NAMES else []))
-                  for f in FAMILY_NAMES + FULL_NAMES]
+_FAMILY_PARAMS = [pytest.param(f, id=f, marks=_marks(f)) for f in FAMILY_NAMES + FULL_NAMES]
 
 
 @pytest.mark.parametrize("name", _FAMILY_PARAMS)

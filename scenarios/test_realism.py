@@ -20,7 +20,7 @@ from mapfusion.harness.realism import format_stats, real_stats, simulated_stats,
 
 from .conftest import REPORTS, family_group, family_results
 
-pytestmark = pytest.mark.sumo
+pytestmark = [pytest.mark.sumo, pytest.mark.slow]  # minutes of drives: pytest -m slow (CI)
 
 PRESETS = ("vo", "mono")
 

@@ -319,6 +319,13 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
     ("import-gps-at", ["import", "kitti", "--poses", "{d}/p.txt", "--times", "{d}/t.txt", "--gps", "{d}/g.kml",
                        "--map", "{in}/map.osm", "--out", "{d}/r", "--gps-at", "roof"],
      {"p.txt": "1 0 0 0 0 1 0 0 0 0 1 0\n" * 3, "t.txt": "0\n0.1\n0.2\n", "g.kml": "<kml/>"}, ["--gps-at"]),
+    # ---- noise
+    ("noise-param-form", ["noise", "{in}/scenario.toml", "--out", "{d}/n.json", "-p", "lane_width_m"], {},
+     ["--param", "KEY=VALUE"]),
+    ("noise-param-unknown", ["noise", "{in}/scenario.toml", "--out", "{d}/n.json", "-p", "wobble=1"], {}, ["wobble"]),
+    ("noise-param-range", ["noise", "{in}/scenario.toml", "--out", "{d}/n.json", "-p", "lane_width_m=-1"], {},
+     ["lane_width_m"]),
+    ("noise-draws", ["noise", "{in}/scenario.toml", "--out", "{d}/n.json", "--draws", "-1"], {}, ["--draws"]),
     # ---- bench
     ("bench-city", ["bench", "--city-km", "50x50"], {}, ["--city-km"]),
     ("bench-duration", ["bench", "--duration-s", "10"], {}, ["--duration-s"]),
