@@ -105,6 +105,7 @@ def test_a_bad_bag_is_one_line_and_exit_2(run_dir, tmp_path, capsys, case, needl
     assert not (tmp_path / "e.tum").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["run_bag", "run.bag"])
 def test_the_readmes_bag_example_end_to_end(run_dir, tmp_path, name):
     """export --bag, then fuse --bag with --out-bag: the README's commands, on a simulated run."""
@@ -131,6 +132,7 @@ def test_a_wheel_speed_topic_becomes_wheel_csv(run_dir, tmp_path):
     assert abs(float(rows[-1].split(",")[1]) - 12.5) < 1e-4
 
 
+@pytest.mark.slow
 def test_a_bags_wheel_and_imu_topics_are_fused_as_the_files_are(run_dir, tmp_path, capsys):
     """Issue 18: `fuse --bag --wheel-topic --imu-topic` gives the estimate of `fuse --wheel --imu` on the
     same samples, and both use them (the summary's wheel + gyro line)."""

@@ -341,6 +341,7 @@ def test_plot_bad_input(tmp_path):
     assert r.exit_code == 2 and "not a run directory" in r.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.sumo
 def test_demo_runs_and_map_fusion_helps(tmp_path):
     r = runner.invoke(app, ["demo", "--out", str(tmp_path / "demo")])

@@ -184,6 +184,7 @@ def test_simulate_a_scenario_naming_a_kitti_sequence(tmp_path):
     assert "kitti/07/map.osm" in (tmp_path / "run" / "scenario.toml").read_text()
 
 
+@pytest.mark.slow
 @needs_data
 @pytest.mark.parametrize("road_fixes", [False, True])
 @pytest.mark.parametrize("seq", ["00", "01", "02", "05", "07"])

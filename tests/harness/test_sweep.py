@@ -49,6 +49,7 @@ def test_sweep_simulates_each_scenario_once_and_resumes(tmp_path):
     assert again.exit_code == 0 and "0 simulation(s) for 0 fusion(s)" in again.stdout and "resuming" in again.stderr
 
 
+@pytest.mark.slow
 def test_sweep_variants_are_named_configurations(tmp_path):
     fam = _family(tmp_path, "1")
     narrow = tmp_path / "narrow.toml"

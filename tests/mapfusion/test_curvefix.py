@@ -263,6 +263,7 @@ def test_a_fix_spread_over_frames_shifts_each_by_the_same_and_weighs_one(road):
     assert got > 0
 
 
+@pytest.mark.slow
 def test_a_curve_fix_beyond_curve_fix_reanchor_m_puts_the_estimate_on_the_shifted_pose(road, monkeypatch):
     """With curve_fix_reanchor_m a fix that far or farther re-anchors the smoother at its frame: that frame's causal
     estimate is the predicted pose moved by the registered shift (its prior the only factor on the frame), not a

@@ -75,6 +75,7 @@ def test_perfect_odometry_without_map_gives_the_truth(grid):
     assert err.max() < 0.1, err.max()
 
 
+@pytest.mark.slow
 @settings(max_examples=8, deadline=None)
 @given(true_scale=st.floats(0.5, 2.0), seed=st.integers(0, 1000))
 def test_scale_recovered_within_one_percent(grid, true_scale, seed):
@@ -458,6 +459,7 @@ def _perfect(grid):
     return truth, MapFusion(grid, cfg)
 
 
+@pytest.mark.slow
 @settings(max_examples=6, deadline=None)
 @given(dx=st.floats(-200.0, 200.0), dy=st.floats(-200.0, 200.0), dyaw=st.floats(-math.pi, math.pi))
 def test_reanchor_at_carries_the_estimate_on_from_the_given_pose(grid, dx, dy, dyaw):

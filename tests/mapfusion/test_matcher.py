@@ -86,6 +86,7 @@ def test_rigid_motion_of_map_and_pose_keeps_the_match(n, seed, rot, tx, ty, w):
     assert e2 == pytest.approx(e, abs=1e-6) and a2 == pytest.approx(a, abs=1e-5) and d2 == pytest.approx(d, abs=1e-5)
 
 
+@pytest.mark.slow
 @FIXTURE_OK
 @given(rot=angles, tx=st.floats(-2000, 2000), ty=st.floats(-2000, 2000), seed=st.integers(0, 1000))
 def test_rigid_motion_on_a_real_road_map(tmp_path, rot, tx, ty, seed):

@@ -150,6 +150,7 @@ def test_thinning_keeps_points_at_least_that_far_apart_along_the_path():
     assert np.all(np.hypot(*np.diff(kept, axis=0).T) >= 5.0)
 
 
+@pytest.mark.slow
 def test_the_engine_moves_a_biased_window_onto_the_roads_when_gps_falls_quiet(road):
     """70 s of fixes all 150 m off, then none (routes 6-9 of the search's tests): with the registration (the
     default) the first map re-anchoring comes reloc_register_after_s after the last fix (or at the first frame after
@@ -170,6 +171,7 @@ def test_the_engine_moves_a_biased_window_onto_the_roads_when_gps_falls_quiet(ro
     assert at_silence >= 3
 
 
+@pytest.mark.slow
 def test_the_engine_leaves_a_good_window_where_it_is(road):
     """The same drives with unbiased fixes, examined all the same: the registration's best shift lies within the
     separation of the estimate, so it moves nothing; no re-anchoring as GPS falls quiet."""

@@ -544,6 +544,7 @@ def test_a_mend_that_would_take_a_path_off_its_roads_is_not_made(road, on_roads)
     assert err < 1e-6, err
 
 
+@pytest.mark.slow
 def test_a_search_beside_gps_never_moves_the_estimate_while_fixes_come(road):
     """Fixes every second to the end, all 150 m off: the estimate is lost (the map disagrees) and a search runs
     beside GPS, but GPS places the estimate: no re-anchoring, and the estimate is the one without the search."""
@@ -773,6 +774,7 @@ def test_a_watched_search_ends_after_its_distance_and_when_another_begins(road):
     assert search.watching is None and search.watched(ox[k + 1], oy[k + 1], oyaw[k + 1]) is None
 
 
+@pytest.mark.slow
 def test_a_watched_search_takes_a_wrong_re_anchoring_back_to_where_its_posterior_gathers(road):
     """A search that has tracked the truth re-anchors the estimate 200 m off it (as a look-alike path would):
     watched (reloc_watch_m), its posterior, which holds the truth, re-anchors it back at its next filter steps;

@@ -82,6 +82,7 @@ def test_road_fixes_hold_a_drive_whose_scale_wandered_after_gps(road, widths):
         assert np.mean(on_errs) <= 12.0, on_errs
 
 
+@pytest.mark.slow
 def test_the_map_re_measures_a_scale_that_wandered(road):
     """After GPS the odometry reports 1/1.2 of each metre: the fixes' clusters carry the scale, and the engine's
     scale moves from GPS's (1) towards 1.2 — with road_fix_scale_gain 0 it stays where GPS left it."""

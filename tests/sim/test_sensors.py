@@ -381,6 +381,7 @@ def test_unit_range_the_wrong_way_round_is_an_error():
         simulate_odometry(truth, _quiet(unit_m_min=0.5, unit_m_max=0.1), np.random.default_rng(0))
 
 
+@pytest.mark.slow
 def test_turn_scale_error_matches_its_sigma():
     """Every measured yaw change reads (1 + ε) times the true one: after a full circle the heading is
     off by ε · 2π, ε ~ N(0, σ²) per run."""
@@ -464,6 +465,7 @@ def test_a_gps_bias_kidnap_moves_every_fix_by_one_vector_in_range(seed):
     assert math.isclose(k.distance_m, float(np.hypot(*shift[0])))
 
 
+@pytest.mark.slow
 @settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 500))
 def test_a_vo_jump_kidnap_is_an_outage_then_one_jump_with_every_other_step_unchanged(seed):
