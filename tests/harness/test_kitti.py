@@ -249,6 +249,7 @@ def test_kitti_errors_match_the_issues_measurement(seq, name, t_err, r_err):
     assert abs(k.t_err_percent - t_err) < 0.01 and abs(k.r_err_deg_per_100m - r_err) < 0.01
 
 
+@pytest.mark.slow
 @data_required("vo")
 @needs_data
 def test_fuse_reports_the_gps_re_scaling_of_a_collapsed_mono_vo(tmp_path):
