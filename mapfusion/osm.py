@@ -167,10 +167,15 @@ def read_drivable_ways(path: str | Path, drivable: tuple[str, ...] = DRIVABLE_HI
     """
     p = check_osm_path(path)
     collector = _WayCollector(frozenset(drivable))
+    error = None
     try:
         collector.apply_file(str(p), locations=True)
     except RuntimeError as exc:
-        raise MapFileError(f"{p}: not a readable OSM file ({str(exc).strip()})") from exc
+        error = str(exc).strip()
+    # raised outside the handler: osmium's traceback (which holds its reader thread pool) is freed here,
+    # so no live pool outlives the call in an exception a caller keeps, to be destroyed in a forked child
+    if error is not None:
+        raise MapFileError(f"{p}: not a readable OSM file ({error})")
     if not collector.any_object:
         raise MapContentError(f"{p}: holds no OSM ways at all")
     if not collector.ways:

@@ -9,6 +9,7 @@ a crash inside SUMO or GTSAM), becomes a failed row; it never costs the other ta
 from __future__ import annotations
 
 import errno
+import gc
 import json
 import logging
 import multiprocessing as mp
@@ -126,6 +127,9 @@ def run_tasks(tasks: list[Any], fn: Callable[[Any], dict | list[dict]], workers:
         _run_dask(tasks, fn, scheduler, on_rows, on_failure)
         return
     ctx = mp.get_context("fork")
+    # garbage a forked child would otherwise destroy holds no live lock or thread pool of this process
+    # (a native thread pool destroyed in a child whose threads were not copied waits forever)
+    gc.collect()
     pending = list(tasks)
     running: dict[Any, tuple] = {}  # pipe → (process, task)
     try:

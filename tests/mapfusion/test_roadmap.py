@@ -191,6 +191,25 @@ def test_truncated_pbf(tmp_path):
         RoadMap.from_osm(p, cache=False)
 
 
+def _frames_of(exc: BaseException | None):
+    while exc is not None:
+        tb = exc.__traceback__
+        while tb is not None:
+            yield tb.tb_frame
+            tb = tb.tb_next
+        exc = exc.__cause__ or exc.__context__
+
+
+def test_an_unreadable_file_leaves_no_osmium_frame_alive(tmp_path):
+    # osmium's frames hold its reader thread pool: kept alive in an exception (a CLI test keeps its result's
+    # exc_info), the pool would be destroyed later, in a forked run worker without its threads, and hang it
+    p = tmp_path / "t.osm.pbf"
+    p.write_bytes(b"PBF")
+    with pytest.raises(MapFileError, match="not a readable OSM file") as info:
+        RoadMap.from_osm(p, cache=False)
+    assert [f.f_code.co_filename for f in _frames_of(info.value) if "osmium" in f.f_code.co_filename] == []
+
+
 def test_no_drivable_road(tmp_path):
     p = write_osm(tmp_path, [(straight_road(300.0), {"highway": "footway"})])
     with pytest.raises(MapContentError, match="no drivable road"):
