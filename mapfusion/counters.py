@@ -32,8 +32,6 @@ class Counters:
     heading_priors: int = 0  # yaw-only priors from a straight road the estimate is on (heading_prior_sigma_deg)
     road_fixes: int = 0  # the road particles' positions added as fixes while GPS was silent (road_fixes)
     road_fixes_gated: int = 0  # and confident answers not added: not moved as the estimate did (the gate)
-    curve_fixes: int = 0  # turns of the estimate's path registered on the roads, added as fixes (curve_fixes)
-    curve_fixes_gated: int = 0  # decisive registrations left out: the estimate kept to its roads (curve_fix_min_priors)
     wheel_frames: int = 0  # frames wheel + gyro made alone, the odometry silent (issue 18)
 
     @property

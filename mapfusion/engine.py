@@ -36,7 +36,6 @@ from .smoother import Smoother
 from .stream import OnFinal, Release
 from .searching import MapSearching
 from .track import Alignment, JumpGuard, planar_of, track_for
-from .curvefix import CurveFixes
 from .tracking import RoadFixes, RoadFixing
 
 log = logging.getLogger(__name__)
@@ -135,7 +134,6 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
         self._yaw_sigma = math.inf  # and its yaw σ (rad; unknown until the first check)
         self._init_reanchoring()
         self._road_fixes = RoadFixes(road, self.cfg, self.counters)  # (inert unless road_fixes and use_map)
-        self._curve_fixes = CurveFixes(road, self.cfg, self.counters)  # (inert unless curve_fixes and use_map)
 
     # ------------------------------------------------------------------ public API (and the readings of _Readings)
     def map_prior_times(self) -> list[float]:
@@ -272,7 +270,6 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
             trust = odometry_trust.from_window(self.cfg, self.track, self._aligned, self.initialiser.fixes)
             if trust is not None:
                 self._motion.sigma_factor = trust.factor
-                self._curve_fixes.drift_ratio = trust.drift_m / trust.model_m
                 log.info("odometry σ × %.3f: the window's drift %.2f-%.2f m against %.2f m at the configured σ "
                          "(%d fixes)", trust.factor, trust.drift_low_m, trust.drift_m, trust.model_m, trust.fixes)
 
@@ -326,7 +323,6 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
         sm.insert(k, pred)
         prior_added = self._map_prior(k, pred, step) if self.cfg.use_map else False
         prior_added = self._road_fix(k, pred) or prior_added
-        prior_added = self._curve_fix(k, pred) or prior_added
         track.online[k] = pred
         self._since_update += 1
         self._maybe_odometry_prior(k, pred)

@@ -16,7 +16,6 @@ from . import factors
 from .association import MapAssociation
 from .config import FusionConfig, OutageStep, StateModel
 from .counters import Counters
-from .curvefix import CurveFixes
 from .errors import EngineError
 from .gps_gate import GpsGate
 from .initialisation import Initialiser
@@ -46,7 +45,6 @@ class Reanchoring:
     _search: Search
     _motion: MotionFusion
     _road_fixes: RoadFixes
-    _curve_fixes: CurveFixes
     _jumps: JumpGuard
     _checked_fix_t: float
     _register_checked_t: float
@@ -77,7 +75,6 @@ class Reanchoring:
         assert self._smoother is not None
         self._smoother.restart_from(k, pose, noise, self._step)
         self._road_fixes.reanchored()
-        self._curve_fixes.forget()
         self._pos_sigma = self._lat_sigma = sigma_m
         self._association.reset()
 

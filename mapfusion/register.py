@@ -78,11 +78,9 @@ def _thin_index(xy: np.ndarray, thin_m: float) -> np.ndarray:
 
 
 def _distance_fields(road: RoadMap, inside: np.ndarray, x0: float, y0: float, shape: tuple[int, int], cell_m: float,
-                     cap_m: float, bins: np.ndarray | None,
-                     half_width_m: np.ndarray | None = None) -> dict[int, np.ndarray]:
-    """The capped squared distance to the way-points on the grid (less the nearest one's half-width, floored at 0,
-    with ``half_width_m``): one field (key -1), or, per heading bin in ``bins``, one to the way-points a vehicle
-    heading that way may drive along (within HEADING_TOLERANCE_DEG)."""
+                     cap_m: float, bins: np.ndarray | None) -> dict[int, np.ndarray]:
+    """The capped squared distance to the way-points on the grid: one field (key -1), or, per heading bin in
+    ``bins``, one to the way-points a vehicle heading that way may drive along (within HEADING_TOLERANCE_DEG)."""
     keys = [-1] if bins is None else sorted(set(bins.tolist()))
     fields = {}
     for key in keys:
@@ -98,15 +96,7 @@ def _distance_fields(road: RoadMap, inside: np.ndarray, x0: float, y0: float, sh
             rows = ((road.xy_m[sel, 1] - y0) // cell_m).astype(np.int64)
             cols = ((road.xy_m[sel, 0] - x0) // cell_m).astype(np.int64)
             occupied[rows, cols] = True
-            if half_width_m is None:
-                dist = ndimage.distance_transform_edt(~occupied, sampling=cell_m)
-            else:
-                # each cell's distance to its nearest way-point's cell, less the widest carriageway drawn there
-                hw = np.zeros(shape)
-                np.maximum.at(hw, (rows, cols), half_width_m[sel])
-                dist, (near_r, near_c) = ndimage.distance_transform_edt(~occupied, sampling=cell_m,
-                                                                        return_indices=True)
-                dist = np.maximum(dist - hw[near_r, near_c], 0.0)
+            dist = ndimage.distance_transform_edt(~occupied, sampling=cell_m)
             cost = np.minimum(dist, cap_m) ** 2
         fields[key] = cost
     return fields
@@ -114,20 +104,14 @@ def _distance_fields(road: RoadMap, inside: np.ndarray, x0: float, y0: float, sh
 
 def register_on_roads(road: RoadMap, xy_m: np.ndarray, radius_m: float, cell_m: float = 2.0, cap_m: float = 10.0,
                       separation_m: float = 30.0, thin_m: float = 5.0,
-                      headings_rad: np.ndarray | None = None,
-                      half_width_m: np.ndarray | None = None) -> Registration | None:
+                      headings_rad: np.ndarray | None = None) -> Registration | None:
     """The shift within ``radius_m`` (m) that best puts the points ``xy_m`` (N, 2, map frame, m) on the
     road way-points (see the module docstring); None when fewer than three points remain after thinning.
     With ``headings_rad`` (N,: the path's heading at each point) a point counts only the way-points it may drive
-    along in that direction (to HEADING_BIN_DEG): a path is not put on a dual carriageway's other half.
-    With ``half_width_m`` (one per road way-point, m) a point's distance is to the carriageway, not its centre
-    line: the distance to the nearest way-point less that way-point's half-width, and 0 within it (a vehicle in
-    the outer lane of a six-lane ring is 8 m off its centre line and on its road)."""
+    along in that direction (to HEADING_BIN_DEG): a path is not put on a dual carriageway's other half."""
     if not (radius_m > 0 and cell_m > 0 and cap_m > 0 and separation_m >= 0):
         raise ValueError(f"register_on_roads: radius_m, cell_m and cap_m must be > 0, separation_m ≥ 0; got "
                          f"{radius_m}, {cell_m}, {cap_m}, {separation_m}")
-    if half_width_m is not None and np.shape(half_width_m) != (len(road.xy_m),):
-        raise ValueError(f"register_on_roads: {len(road.xy_m)} way-points but {np.shape(half_width_m)} half-widths")
     xy = np.asarray(xy_m, dtype=float).reshape(-1, 2)
     idx = _thin_index(xy, thin_m)
     pts = xy[idx]
@@ -149,7 +133,7 @@ def register_on_roads(road: RoadMap, xy_m: np.ndarray, radius_m: float, cell_m: 
     ny = int(math.ceil((pts[:, 1].max() + pad - y0) / cell_m)) + 1
     way = road.xy_m
     inside = (way[:, 0] >= x0) & (way[:, 0] < x0 + nx * cell_m) & (way[:, 1] >= y0) & (way[:, 1] < y0 + ny * cell_m)
-    fields = _distance_fields(road, inside, x0, y0, (ny, nx), cell_m, cap_m, bins, half_width_m)
+    fields = _distance_fields(road, inside, x0, y0, (ny, nx), cell_m, cap_m, bins)
     # every point's cost over the (2r + 1)² shifts is a window of its field: their sum, one window per point
     ix = ((pts[:, 0] - x0) // cell_m).astype(np.int64)
     iy = ((pts[:, 1] - y0) // cell_m).astype(np.int64)

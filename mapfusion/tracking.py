@@ -37,9 +37,8 @@ import numpy as np
 
 from . import factors
 from .association import MapAssociation
-from .config import FusionConfig, StateModel
+from .config import FusionConfig
 from .counters import Counters
-from .curvefix import CurveFixes
 from .relocalise import Guess, Located, Region, RoadParticles, Search
 from .roadmap import RoadMap
 from .smoother import Smoother
@@ -257,7 +256,6 @@ class RoadFixing:
     counters: Counters
     alignment: Alignment | None
     _road_fixes: RoadFixes
-    _curve_fixes: CurveFixes
     _pos_sigma: float
     _yaw_sigma: float
     _smoother: Smoother | None
@@ -288,35 +286,4 @@ class RoadFixing:
         if loc is not None and gain > 0:
             scale = math.exp((1.0 - gain) * math.log(self.alignment.scale) + gain * math.log(loc.scale))
             self.alignment = dataclasses.replace(self.alignment, scale=scale)
-        return True
-
-    def _curve_fix(self, k: int, pred: gtsam.Pose3) -> bool:
-        """The curve fix on frame k (``curve_fixes``); True if added. None while a search runs: it questions the
-        very estimate whose path would be registered."""
-        if not self._curve_fixes.enabled:
-            return False
-        self._curve_fixes.note_priors(pred, bool(self.map_prior_frames) and self.map_prior_frames[-1] == k)
-        if self._search.active is not None:
-            self._curve_fixes.forget()
-            return False
-        fixes = self._curve_fixes.step(k, self.track.t[k], pred, self._road_fixes.last_gps_t)
-        if not fixes:
-            return False
-        assert self._smoother is not None
-        cfg = self.cfg
-        dx, dy = self._curve_fixes.last_shift_m
-        if 0 < cfg.curve_fix_reanchor_m <= math.hypot(dx, dy):
-            pose = gtsam.Pose3(pred.rotation(), gtsam.Point3(pred.x() + dx, pred.y() + dy, pred.z()))
-            sigmas = factors.pose_sigmas(StateModel.planar, math.radians(cfg.relocalise_yaw_sigma_floor_deg),
-                                         cfg.curve_fix_sigma_m)
-            self._restart_from(k, pose, factors.diagonal(sigmas), cfg.curve_fix_sigma_m)
-            # the registration placed the whole path: its frames' final estimates move with it
-            smoothed = self._smoother.smoothed
-            for j in range(max(self._curve_fixes.last_path_k0, self.track.first), k):
-                p = smoothed.get(j)
-                if p is not None:
-                    smoothed[j] = gtsam.Pose3(p.rotation(), gtsam.Point3(p.x() + dx, p.y() + dy, p.z()))
-            return True
-        for fix in fixes:
-            self._smoother.add(fix)
         return True

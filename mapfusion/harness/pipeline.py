@@ -195,7 +195,6 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
                         "lost_events": c.lost_events, "lost_s": mf.engine.lost_s,
                         "map_relocalisations": c.map_relocalisations,
                         "road_fixes": c.road_fixes, "road_fixes_gated": c.road_fixes_gated,
-                        "curve_fixes": c.curve_fixes,
                         "scale": mf.engine.scale, "initialised_at_s": mf.engine.initialised_at,
                         "odometry_sigma_factor": mf.engine.odometry_sigma_factor})
         metrics.update(_kidnap_metrics(mf, truth, sensors.kidnap))

@@ -107,33 +107,6 @@ def test_a_straight_road_is_never_a_clear_answer(tmp_path_factory, along_m, acro
     assert not _confident(reg)
 
 
-@pytest.fixture(scope="module")
-def ring(tmp_path_factory):
-    return six_lane_ring(tmp_path_factory.mktemp("ring"))
-
-
-@settings(max_examples=20, deadline=None)
-@given(inward_m=st.floats(0.0, 7.0), start=st.floats(0.0, 2 * math.pi))
-def test_a_path_in_an_outer_lane_is_on_its_road_with_the_carriageway(ring, inward_m, start):
-    """A 100 m arc driven ``inward_m`` inside the ring's centre line, within its 9 m half-width: measured to the
-    carriageway it lies on its road unshifted, and no shift is decisive (every shift near it fits as well: a curve
-    fix cannot pass the ratio test); measured to the centre line, an arc 4 m or more inside
-    is pulled about that far towards the line (the fix the carriageway keeps out)."""
-    a = start + np.linspace(0.0, 1.0, 101)  # 100 m of arc, a point a metre
-    pts = np.column_stack([(100.0 - inward_m) * np.cos(a), (100.0 - inward_m) * np.sin(a)])
-    half = ring.width_m(CFG.lane_width_m) / 2.0
-    assert np.allclose(half, 9.0)
-    band = register_on_roads(ring, pts, 20.0, cell_m=1.0, cap_m=6.0, separation_m=6.0, half_width_m=half)
-    assert band is not None and band.rms_unshifted_m <= 0.5, band
-    assert not band.decisive(CFG.curve_fix_ratio, CFG.curve_fix_max_rms_m, CFG.curve_fix_min_shift_m), band
-    line = register_on_roads(ring, pts, 20.0, cell_m=1.0, cap_m=6.0, separation_m=6.0)
-    assert line is not None
-    if inward_m >= 4.0:
-        assert line.rms_unshifted_m >= 3.0 and line.shift_m >= inward_m - 2.0, line
-    with pytest.raises(ValueError, match="half-widths"):
-        register_on_roads(ring, pts, 20.0, half_width_m=half[:-1])
-
-
 def test_bad_arguments_are_refused_and_too_few_points_give_nothing(road):
     with pytest.raises(ValueError):
         register_on_roads(road, np.zeros((5, 2)), 0.0)
