@@ -7,6 +7,11 @@ Umeyama alignment for R with a linear least-squares solve for t and ℓ; its res
 The truth is the camera's pose in ENU with body axes (x forward, y left, z up). Track points the
 recording filled by interpolation (exactly straight, evenly spaced runs) are left out of the fit
 and of its residual.
+
+The track covers the raw recording, one point a raw frame; an odometry sequence may begin later in it
+(KITTI 08 begins at raw frame 1,100). The offset is found by the step lengths: the sequence's
+frame-to-frame distances slid along the track's, the offsets whose squared differences sum least
+georeferenced in turn, and the one whose fit leaves the least residual kept (:func:`track_offsets`).
 """
 
 from __future__ import annotations
@@ -159,11 +164,48 @@ class KittiImport:
     track_lonlatalt: np.ndarray
     origin_alt_m: float
     filled: np.ndarray  # track points the recording filled (left out of the fit)
+    offset: int = 0  # the track point of the sequence's frame 0
+
+
+#: Limits of a believable georeference: KITTI's five drives fit with 0.11–0.37 m RMSE and lever
+#: arms of 1.1–2.4 m; another sequence's track fits its poses with ~90 m and a 250 m "lever arm".
+MAX_FIT_RESIDUAL_M, MAX_LEVER_ARM_M = 2.0, 5.0
+
+#: Offsets georeferenced when the track is longer than the sequence, and how far apart (frames) they lie: a
+#: stop-and-go drive repeats its step lengths within a few frames, and the fit tells those neighbours apart.
+OFFSET_CANDIDATES, OFFSET_SEPARATION_FRAMES = 5, 10
+
+
+def track_offsets(poses_cam: np.ndarray, track_enu_m: np.ndarray, count: int = OFFSET_CANDIDATES,
+                  separation: int = OFFSET_SEPARATION_FRAMES) -> list[int]:
+    """Where the sequence may begin in the track: up to ``count`` offsets o (track point o is frame 0), best
+    first, at least ``separation`` frames apart, ranked by Σ_i (|g_{o+i+1} − g_{o+i}| − |t_{i+1} − t_i|)², the
+    track's step lengths (``track_enu_m``: (M, 3) m) against the camera's (``poses_cam``: (N, 4, 4), M ≥ N)."""
+    from scipy.signal import correlate
+
+    step_cam = np.linalg.norm(np.diff(poses_cam[:, :3, 3], axis=0), axis=1)
+    step_gps = np.linalg.norm(np.diff(np.asarray(track_enu_m, dtype=float), axis=0), axis=1)
+    n = len(step_cam)
+    if len(step_gps) < n:
+        raise ValueError(f"track_offsets: {len(step_gps) + 1} track points for {n + 1} poses")
+    if n == 0:
+        return [0]
+    # Σ (a − b)² = Σ a² − 2 Σ ab + Σ b², each window's Σ a² from a running sum
+    sq = np.concatenate(([0.0], np.cumsum(step_gps**2)))
+    cost = sq[n:] - sq[:-n] - 2.0 * correlate(step_gps, step_cam, mode="valid") + float(step_cam @ step_cam)
+    out: list[int] = []
+    for o in np.argsort(cost, kind="stable").tolist():
+        if all(abs(o - p) >= separation for p in out):
+            out.append(int(o))
+            if len(out) == count:
+                break
+    return out
 
 
 def import_kitti(poses_path: str | Path, times_path: str | Path, kml_path: str | Path,
-                 projection: LocalProjection) -> KittiImport:
-    """Read a KITTI sequence and georeference it into ``projection``'s ENU frame."""
+                 projection: LocalProjection, offset: int | None = None) -> KittiImport:
+    """Read a KITTI sequence and georeference it into ``projection``'s ENU frame. ``offset``: the track point of
+    the sequence's frame 0 (None: found, :func:`track_offsets`)."""
     from .formats import read_kitti_poses, read_times
 
     poses = read_kitti_poses(poses_path)
@@ -171,26 +213,34 @@ def import_kitti(poses_path: str | Path, times_path: str | Path, kml_path: str |
     if len(t) != len(poses):
         raise FormatError(f"{poses_path}: {len(poses)} poses but {times_path} has {len(t)} times "
                           f"(line {min(len(t), len(poses)) + 1} of the longer file has no partner)")
-    track = read_kml_track(kml_path)
-    if len(track) < len(poses):
-        raise FormatError(f"{kml_path}: {len(track)} track points for {len(poses)} poses")
-    track = track[: len(poses)]  # point k is raw frame k (shared/data/README.md)
-    x, y = projection.to_enu(track[:, 1], track[:, 0])
-    alt0 = float(track[0, 2])
-    gps = np.column_stack([x, y, track[:, 2] - alt0])
-    filled = filled_points(track)
-    geo = georeference(poses, gps, use=~filled)
+    full = read_kml_track(kml_path)
+    spare = len(full) - len(poses)
+    if spare < 0:
+        raise FormatError(f"{kml_path}: {len(full)} track points for {len(poses)} poses")
+    if offset is not None and not 0 <= offset <= spare:
+        raise FormatError(f"{kml_path}: offset {offset} out of range: {len(full)} track points for {len(poses)} "
+                          f"poses allow 0-{spare}")
+    x, y = projection.to_enu(full[:, 1], full[:, 0])
+    enu = np.column_stack([x, y, full[:, 2]])
+    candidates = [offset] if offset is not None else track_offsets(poses, enu)
+    best: tuple | None = None
+    for o in candidates:
+        track = full[o:o + len(poses)]
+        alt0 = float(track[0, 2])
+        gps = np.column_stack([enu[o:o + len(poses), :2], track[:, 2] - alt0])
+        filled = filled_points(track)
+        geo = georeference(poses, gps, use=~filled)
+        if best is None or geo.residual_rmse_m < best[0].residual_rmse_m:
+            best = (geo, o, track, alt0, filled)
+    assert best is not None
+    geo, o, track, alt0, filled = best
     lever_m = float(np.linalg.norm(geo.lever_arm_cam_m))
     if geo.residual_rmse_m > MAX_FIT_RESIDUAL_M or lever_m > MAX_LEVER_ARM_M:
+        tried = f"offset {o}" if offset is not None else f"best of offsets {', '.join(map(str, candidates))}"
         raise FormatError(f"{kml_path}: the track does not fit the poses of {poses_path} (residual "
-                          f"{geo.residual_rmse_m:.1f} m RMSE, lever arm {lever_m:.1f} m; at most "
+                          f"{geo.residual_rmse_m:.1f} m RMSE, lever arm {lever_m:.1f} m at {tried}; at most "
                           f"{MAX_FIT_RESIDUAL_M:g} and {MAX_LEVER_ARM_M:g} m): the track of another sequence?")
-    return KittiImport(t, geo.camera_to_enu(poses), geo, track, alt0, filled)
-
-
-#: Limits of a believable georeference: KITTI's five drives fit with 0.11–0.37 m RMSE and lever
-#: arms of 1.1–2.4 m; another sequence's track fits its poses with ~90 m and a 250 m "lever arm".
-MAX_FIT_RESIDUAL_M, MAX_LEVER_ARM_M = 2.0, 5.0
+    return KittiImport(t, geo.camera_to_enu(poses), geo, track, alt0, filled, o)
 
 
 def track_at_camera(imp: KittiImport, projection: LocalProjection) -> np.ndarray:
@@ -233,8 +283,9 @@ def write_import(out: str | Path, imp: KittiImport, projection: LocalProjection,
         tr[:, 1], tr[:, 0], tr[:, 2] = lat_c, lon_c, cam[:, 2] + imp.origin_alt_m
     write_gps_csv(d / "gps.csv", imp.t_s, tr[:, 1], tr[:, 0], tr[:, 2], np.full(len(tr), gps_sigma_m))
     g = imp.georef
-    info = {"map": map_path, "frames": int(len(imp.t_s)), "residual_rmse_m": g.residual_rmse_m,
-            "residual_rmse_xy_m": g.residual_rmse_xy_m, "residual_max_m": float(g.residuals_m.max()),
+    info = {"map": map_path, "frames": int(len(imp.t_s)), "track_offset": imp.offset,
+            "residual_rmse_m": g.residual_rmse_m, "residual_rmse_xy_m": g.residual_rmse_xy_m,
+            "residual_max_m": float(g.residuals_m.max()),
             "lever_arm_cam_m": g.lever_arm_cam_m.tolist(), "rotation": g.rotation.tolist(),
             "translation_m": g.translation.tolist(), "origin_alt_m": imp.origin_alt_m,
             "filled_track_points": int(imp.filled.sum()),

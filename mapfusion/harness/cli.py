@@ -284,9 +284,13 @@ def import_kitti_cmd(
                                                     "(default: map.osm beside the poses).")] = None,
     gps_at: Annotated[str, typer.Option("--gps-at", help="camera: the fixes moved to camera 0 by the fitted lever arm "
                                         "(what a camera odometry is compared with); antenna: the raw track.")] = "camera",
+    offset: Annotated[Optional[int], typer.Option("--offset", help="The track point (raw frame) of the sequence's "
+                                                  "frame 0, when the track covers a longer recording (KITTI 08: "
+                                                  "1100). Default: found from the step lengths.")] = None,
 ) -> None:
     """A KITTI sequence as a run directory: truth.tum in the map's ENU frame (georeferenced to the RTK
-    track with the antenna's lever arm), gps.csv from the track, import.json with the fit's residual."""
+    track with the antenna's lever arm), gps.csv from the track, import.json with the fit's residual and the
+    track offset used."""
     from mapfusion.kitti import import_kitti, write_import
     from mapfusion.maps import resolve_map
     from mapfusion.roadmap import RoadMap
@@ -297,13 +301,14 @@ def import_kitti_cmd(
     try:
         mp = resolve_map(map_path) if map_path else resolve_map(poses.parent / "map.osm")
         road = RoadMap.from_osm(mp)
-        imp = import_kitti(poses, times, gps, road.projection)
+        imp = import_kitti(poses, times, gps, road.projection, offset=offset)
         road.check_covers(imp.truth_enu[:, :2, 3], f"{gps}: the georeferenced drive on the map {mp}")
         write_import(out, imp, road.projection, str(Path(mp).resolve()), gps_at_camera=gps_at == "camera")
     except InputError as exc:
         _fail(str(exc))
     g = imp.georef
-    console.print(f"{len(imp.t_s):,} frames → {out}; fit residual {g.residual_rmse_m:.3f} m RMSE "
+    how = "given" if offset is not None else "found"
+    console.print(f"{len(imp.t_s):,} frames → {out}; track offset {imp.offset} ({how}); fit residual {g.residual_rmse_m:.3f} m RMSE "
                   f"(max {g.residuals_m.max():.2f} m, {int(imp.filled.sum())} filled track points left out); lever arm (camera x right, y down, z forward) "
                   f"{g.lever_arm_cam_m[0]:+.2f}, {g.lever_arm_cam_m[1]:+.2f}, {g.lever_arm_cam_m[2]:+.2f} m")
 

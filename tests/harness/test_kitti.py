@@ -10,7 +10,10 @@ from typer.testing import CliRunner
 
 from mapfusion.harness.cli import app
 from mapfusion.formats import FormatError
-from mapfusion.kitti import filled_points, georeference, read_kml_track
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapfusion.kitti import filled_points, georeference, read_kml_track, track_offsets
 from tests.helpers import DATA, data_required
 
 runner = CliRunner()
@@ -33,6 +36,7 @@ def test_georeferencing_residual_under_half_a_metre(seq, tmp_path):
     lx, _, lz = info["lever_arm_cam_m"]
     assert -0.6 < lx < -0.1 and -1.5 < lz < -0.8
     assert abs(info["frames"] - len((d / "times.txt").read_text().split())) == 0
+    assert info["track_offset"] == 0  # point k is raw frame k for these five (shared/data/README.md)
     for f in ("truth.tum", "truth.csv", "gps.csv"):
         assert (tmp_path / seq / f).stat().st_size > 0
     # gps.csv sits at camera 0 (moved by the lever arm): it agrees with the truth to the fit's residual
@@ -272,3 +276,78 @@ def test_fuse_reports_the_gps_re_scaling_of_a_collapsed_mono_vo(tmp_path):
     assert int(m.group(1)) >= int(m.group(2)) >= 1
     scale = float(re.search(r"scale ([0-9.]+) ±", r.output).group(1))
     assert scale > 100.0, scale
+
+
+def _drive(rng: np.random.Generator, frames: int) -> np.ndarray:
+    """A planar drive at 10 Hz whose speed wanders (stops included) and whose heading turns: (frames, 3) m."""
+    accel = rng.normal(0.0, 1.5, frames)  # m/s², per 0.1 s step
+    speed = np.clip(8.0 + np.cumsum(accel * 0.1) + 3.0 * np.sin(np.arange(frames) / 37.0), 0.0, 25.0)
+    yaw = np.cumsum(rng.normal(0.0, 0.02, frames))
+    step = speed * 0.1
+    return np.column_stack([np.cumsum(step * np.cos(yaw)), np.cumsum(step * np.sin(yaw)), np.zeros(frames)])
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), before=st.integers(0, 1500), after=st.integers(0, 200),
+       frames=st.integers(200, 1500), angle=st.floats(0.0, 6.28))
+def test_the_offset_with_the_least_step_length_misfit_is_where_the_sequence_begins(seed, before, after, frames, angle):
+    """A sequence cut from a longer recording: the camera's poses re-based on its first frame, the track (5 cm of
+    noise) rotated into another frame; the first offset ranked is where the sequence begins (to a frame: a stop
+    repeats its step lengths), and the candidates lie at least the separation apart."""
+    rng = np.random.default_rng(seed)
+    path = _drive(rng, before + frames + after)
+    c, s = np.cos(angle), np.sin(angle)
+    track = path @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T + rng.normal(0.0, 0.05, path.shape)
+    poses = np.tile(np.eye(4), (frames, 1, 1))
+    poses[:, :3, 3] = path[before:before + frames] - path[before]
+    found = track_offsets(poses, track)
+    assert abs(found[0] - before) <= 1, (found, before)
+    assert all(abs(a - b) >= 10 for i, a in enumerate(found) for b in found[:i])
+    with pytest.raises(ValueError, match="track points"):
+        track_offsets(poses, track[: frames - 1])
+
+
+def _cut(d: Path, first: int, out: Path) -> None:
+    """The sequence in ``d`` from frame ``first`` on, re-based as KITTI's own files are: poses relative to the new
+    frame 0, times from 0."""
+    from mapfusion.formats import read_kitti_poses, read_times
+
+    poses, t = read_kitti_poses(d / "poses.txt")[first:], read_times(d / "times.txt")[first:]
+    rebased = np.linalg.inv(poses[0]) @ poses
+    out.mkdir(parents=True)
+    (out / "poses.txt").write_text("".join(" ".join(f"{v:.9e}" for v in p[:3].reshape(-1)) + "\n" for p in rebased))
+    (out / "times.txt").write_text("".join(f"{v - t[0]:.6e}\n" for v in t))
+
+
+@needs_data
+@pytest.mark.parametrize("seq,first", [("07", 300), ("00", 1100)])
+def test_a_sequence_cut_from_a_longer_recording_finds_its_offset(seq, first, tmp_path):
+    """KITTI 08's odometry begins at raw frame 1,100 of a track that covers the whole recording: the same made from
+    a development drive. The offset is found, printed and written; the fit meets the limits the whole drives meet
+    and its ground-plane truth agrees with the whole drive's import; a wrong offset given by hand is refused."""
+    import json
+
+    from mapfusion.kitti import MAX_FIT_RESIDUAL_M, MAX_LEVER_ARM_M
+
+    d = Path(DATA) / "kitti" / seq
+    _cut(d, first, tmp_path / "cut")
+    args = ["import", "kitti", "--poses", str(tmp_path / "cut" / "poses.txt"), "--times",
+            str(tmp_path / "cut" / "times.txt"), "--gps", str(d / "rtk_gps.kml"), "--map", str(d / "map.osm")]
+    r = runner.invoke(app, [*args, "--out", str(tmp_path / "r")])
+    assert r.exit_code == 0, r.output
+    assert f"track offset {first} (found)" in r.stdout
+    info = json.loads((tmp_path / "r" / "import.json").read_text())
+    assert info["track_offset"] == first
+    assert info["residual_rmse_m"] < 0.5 < MAX_FIT_RESIDUAL_M
+    assert np.linalg.norm(info["lever_arm_cam_m"]) < MAX_LEVER_ARM_M
+    whole = runner.invoke(app, ["import", "kitti", "--poses", str(d / "poses.txt"), "--times", str(d / "times.txt"),
+                                "--gps", str(d / "rtk_gps.kml"), "--out", str(tmp_path / "w")])
+    assert whole.exit_code == 0, whole.output
+    from mapfusion.formats import read_tum
+
+    cut_xy, whole_xy = read_tum(tmp_path / "r" / "truth.tum")[1][:, :2], read_tum(tmp_path / "w" / "truth.tum")[1][:, :2]
+    assert np.abs(cut_xy - whole_xy[first:]).max() < 0.5
+    wrong = runner.invoke(app, [*args, "--out", str(tmp_path / "x"), "--offset", str(first - 200)])
+    assert wrong.exit_code == 2 and "does not fit" in wrong.stderr and f"offset {first - 200}" in wrong.stderr
+    beyond = runner.invoke(app, [*args, "--out", str(tmp_path / "y"), "--offset", str(first + 200)])
+    assert beyond.exit_code == 2 and "out of range" in beyond.stderr

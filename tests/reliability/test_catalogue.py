@@ -319,6 +319,11 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], list[str]]] = [
     ("import-gps-at", ["import", "kitti", "--poses", "{d}/p.txt", "--times", "{d}/t.txt", "--gps", "{d}/g.kml",
                        "--map", "{in}/map.osm", "--out", "{d}/r", "--gps-at", "roof"],
      {"p.txt": "1 0 0 0 0 1 0 0 0 0 1 0\n" * 3, "t.txt": "0\n0.1\n0.2\n", "g.kml": "<kml/>"}, ["--gps-at"]),
+    ("import-offset-range", ["import", "kitti", "--poses", "{d}/p.txt", "--times", "{d}/t.txt", "--gps", "{d}/g.kml",
+                             "--map", "{in}/map.osm", "--out", "{d}/r", "--offset", "-1"],
+     {"p.txt": "1 0 0 0 0 1 0 0 0 0 1 0\n" * 3, "t.txt": "0\n0.1\n0.2\n",
+      "g.kml": "<kml><LineString><coordinates>24.9,60.17,0 24.9,60.17,0 24.9,60.17,0 24.9,60.17,0"
+               "</coordinates></LineString></kml>"}, ["g.kml", "offset -1"]),
     # ---- noise
     ("noise-param-form", ["noise", "{in}/scenario.toml", "--out", "{d}/n.json", "-p", "lane_width_m"], {},
      ["--param", "KEY=VALUE"]),
