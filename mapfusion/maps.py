@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-import sys
+from importlib import resources
 from pathlib import Path
 
 from .errors import MapFileError
@@ -21,14 +21,15 @@ BUILTIN_MAPS: dict[str, str] = {
 
 
 def maps_dir() -> Path:
-    """The bundled maps: ``$MAPFUSION_MAPS``, the source tree's ``maps/``, or ``<prefix>/share/mapfusion/maps``."""
+    """The bundled maps: ``$MAPFUSION_MAPS``, else the package's own ``mapfusion/data/maps`` (package data: in a
+    checkout, an editable install and an installed wheel alike)."""
     env = os.environ.get("MAPFUSION_MAPS")
     if env:
         return Path(env)
-    here = Path(__file__).resolve().parent.parent / "maps"
-    if here.is_dir():
-        return here
-    return Path(sys.prefix) / "share" / "mapfusion" / "maps"
+    here = resources.files("mapfusion").joinpath("data", "maps")
+    if not isinstance(here, Path):  # a zipped install: the maps are not files netconvert could read
+        raise MapFileError(f"the bundled maps are inside {here} (not on the file system): set MAPFUSION_MAPS")
+    return here
 
 
 def resolve_map(name_or_path: str | os.PathLike, base_dir: Path | None = None) -> Path:

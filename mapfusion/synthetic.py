@@ -34,7 +34,7 @@ class SyntheticKind(str, Enum):
     city = "city"
 
 
-#: Kinds small enough to commit under ``maps/synthetic/`` (``city`` is for performance work).
+#: Kinds small enough to commit under ``mapfusion/data/maps/synthetic/`` (``city`` is for performance work).
 SMALL_KINDS = (
     SyntheticKind.grid,
     SyntheticKind.roundabout,

@@ -13,4 +13,4 @@ REPO = Path(__file__).resolve().parent.parent
 def helsinki():
     from mapfusion import RoadMap
 
-    return RoadMap.from_osm(REPO / "maps" / "helsinki.osm.pbf")
+    return RoadMap.from_osm(REPO / "mapfusion" / "data" / "maps" / "helsinki.osm.pbf")

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from mapfusion.synthetic import OsmBuilder
 
 REPO = Path(__file__).resolve().parent.parent
-MAPS = REPO / "maps"
+MAPS = REPO / "mapfusion" / "data" / "maps"
 #: The real data (KITTI drives, OSM cities, VO results): never in the repository.
 DATA = os.environ.get("MAPFUSION_DATA")
 

@@ -83,7 +83,7 @@ def _seq(tmp_path, poses_lines, times_lines, kml):
     (tmp_path / "poses.txt").write_text("\n".join(poses_lines) + "\n")
     (tmp_path / "times.txt").write_text("\n".join(times_lines) + "\n")
     (tmp_path / "gps.kml").write_text(kml)
-    (tmp_path / "map.osm").write_text((Path(__file__).parents[2] / "maps" / "synthetic" / "grid.osm").read_text())
+    (tmp_path / "map.osm").write_text((Path(__file__).parents[2] / "mapfusion" / "data" / "maps" / "synthetic" / "grid.osm").read_text())
     return ["import", "kitti", "--poses", str(tmp_path / "poses.txt"), "--times", str(tmp_path / "times.txt"),
             "--gps", str(tmp_path / "gps.kml"), "--out", str(tmp_path / "out")]
 
