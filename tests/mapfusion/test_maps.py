@@ -38,3 +38,9 @@ def test_the_wheel_takes_every_bundled_file():
     taken = {p for g in globs for p in PACKAGE.glob(g)}
     bundled = {p for p in (PACKAGE / "data" / "maps").rglob("*") if p.is_file()}
     assert bundled and bundled <= taken, sorted(str(p) for p in bundled - taken)
+
+
+def test_a_scenario_in_the_checkout_may_name_maps_relative_to_itself():
+    """DESIGN's scenario example: ``map = "maps/helsinki.osm.pbf"`` relative to the file, at the repository root."""
+    root = PACKAGE.parent
+    assert resolve_map("maps/helsinki.osm.pbf", base_dir=root).resolve() == (maps_dir() / "helsinki.osm.pbf").resolve()
