@@ -244,6 +244,29 @@ class WheelConfig:
     overrides: tuple[tuple[str, float], ...] = param((), "Preset fields replaced by the scenario.")
 
 
+#: An estimator's name: the infix of its result keys (``ate_<name>_m``) and of ``estimate_<name>.tum``.
+ESTIMATOR_NAME = re.compile(r"[a-z][a-z0-9_]{0,31}")
+#: The names the test bed's own two estimates use.
+RESERVED_ESTIMATORS = ("odometry", "mapfusion", "reduction")
+
+
+@dataclass(frozen=True)
+class EstimatorSpec:
+    """``[[estimators]]``: a method scored beside the odometry and Map-Fusion on the same inputs
+    (``mapfusion.harness.estimators``). Exactly one of ``use`` and ``command``."""
+
+    name: str = param("", "Its name in tables and result keys (ate_<name>_m): lower-case letters, digits and '_', "
+                      "at most 32, not odometry or mapfusion.")
+    use: str = param("", "A Python class, module:Class or the name of a mapfusion.estimators entry point; made as "
+                     "Class(road, **params) and fed the run's inputs in time order.")
+    command: str = param("", "An external command instead, run once per run: a template whose {odometry}, {gps}, "
+                         "{imu}, {wheel}, {map} and {out} become file paths; it reads the inputs and writes a TUM "
+                         "estimate to {out}.")
+    params: tuple[tuple[str, Any], ...] = param((), "Keyword arguments of the class (an inline table).")
+    timeout_s: float = param(3600.0, "An estimator still running after this long fails its column.", unit="s",
+                             min=0.0, exclusive_min=True, max=86400.0)
+
+
 @dataclass(frozen=True)
 class Scenario:
     """One drive: map, seed, timing, traffic, weather, sensors, GPS-denied zones and engine parameters."""
@@ -269,6 +292,7 @@ class Scenario:
     tunnels: tuple[TunnelZone, ...] = param((), "[[tunnels]]")
     kidnap: KidnapConfig = param(KidnapConfig(), "[kidnap] (issue 17)")
     mapfusion: FusionConfig = param(FusionConfig(), "[mapfusion]")
+    estimators: tuple[EstimatorSpec, ...] = param((), "[[estimators]]: methods scored beside Map-Fusion")
 
     def to_toml_dict(self) -> dict:
         """The fully resolved scenario as a TOML-ready mapping (``scenario.toml`` of a run)."""
@@ -284,6 +308,9 @@ class Scenario:
         d["tunnels"] = [to_mapping(z) for z in self.tunnels]
         if not d["tunnels"]:
             del d["tunnels"]
+        del d["estimators"]
+        if self.estimators:  # (a scenario without them writes no table: unchanged files)
+            d["estimators"] = [_estimator_toml(e) for e in self.estimators]
         return d
 
     def to_toml(self) -> str:
@@ -357,6 +384,8 @@ def _scenario_from_dict(data: dict, where: str, base_dir: Path | None, resolve: 
         if not isinstance(zones, list):
             raise ScenarioError(f"{where}: tunnels must be an array of tables ([[tunnels]])")
         kwargs["tunnels"] = tuple(from_mapping(TunnelZone, z, where, prefix=f"tunnels[{i}].") for i, z in enumerate(zones))
+    if "estimators" in data:
+        kwargs["estimators"] = _estimators(data.pop("estimators"), where)
     map_given = "map" in data
     top = from_mapping(Scenario, data, where) if data else Scenario()
     sc = dataclasses.replace(top, **kwargs)
@@ -405,6 +434,84 @@ def _scenario_from_dict(data: dict, where: str, base_dir: Path | None, resolve: 
     except InputError as exc:
         raise ScenarioError(f"{where}: map: {exc}") from None
     return sc
+
+
+#: The files an external estimator's command may name: {odometry} (TUM, the odometry's own frame), {gps} (CSV
+#: t,lat,lon,alt,sigma_m), {imu} and {wheel} (CSV, where the run feeds them; else empty files), {map} (the OSM
+#: file) and {out} (the TUM estimate it writes, in the map's ENU frame).
+COMMAND_FILES = ("odometry", "gps", "imu", "wheel", "map", "out")
+
+
+def command_arguments(template: str, files: dict[str, str]) -> list[str]:
+    """The command's argument list: the template split as a shell would (no shell runs it), each {name} in an
+    argument replaced by ``files[name]``. A ValueError for an unknown {name}, a template without {out}, an
+    unbalanced quote or brace, or an empty command."""
+    import shlex
+    import string
+
+    try:
+        words = shlex.split(template)
+    except ValueError as exc:
+        raise ValueError(f"{template!r}: {exc}") from None
+    if not words:
+        raise ValueError("an empty command")
+    named: set[str] = set()
+    out = []
+    for w in words:
+        try:
+            fields = [f for _, f, _, _ in string.Formatter().parse(w) if f is not None]
+        except ValueError as exc:
+            raise ValueError(f"{w!r}: {exc} (a literal brace is written {{{{ or }}}})") from None
+        for f in fields:
+            if f not in COMMAND_FILES:
+                raise ValueError(f"{{{f}}} is not one of {', '.join('{' + k + '}' for k in COMMAND_FILES)}")
+        named.update(fields)
+        out.append(w.format(**files))
+    if "out" not in named:
+        raise ValueError("the command must name {out}, the TUM estimate it writes")
+    return out
+
+
+def _estimator_toml(e: EstimatorSpec) -> dict:
+    d: dict[str, Any] = {"name": e.name}
+    d.update({"use": e.use} if e.use else {"command": e.command})
+    if e.params:
+        d["params"] = dict(e.params)
+    d["timeout_s"] = e.timeout_s
+    return d
+
+
+def _estimators(tables: Any, where: str) -> tuple[EstimatorSpec, ...]:
+    """``[[estimators]]``, checked before any run: names, one of use / command, the command's placeholders."""
+    if not isinstance(tables, list) or not all(isinstance(t, dict) for t in tables):
+        raise ScenarioError(f"{where}: estimators must be an array of tables ([[estimators]])")
+    out: list[EstimatorSpec] = []
+    for i, t in enumerate(tables):
+        t = dict(t)
+        at = f"estimators[{i}]"
+        params = t.pop("params", {})
+        if not isinstance(params, dict):
+            raise ScenarioError(f"{where}: {at}.params must be a table (params = {{ key = value }})")
+        e = from_mapping(EstimatorSpec, t, where, prefix=f"{at}.")
+        e = dataclasses.replace(e, params=tuple(params.items()))
+        if not ESTIMATOR_NAME.fullmatch(e.name) or e.name in RESERVED_ESTIMATORS:
+            raise ScenarioError(f"{where}: {at}.name {e.name!r} must be 1-32 lower-case letters, digits or '_', "
+                                f"starting with a letter, and not {', '.join(RESERVED_ESTIMATORS)}")
+        if e.name in {o.name for o in out}:
+            raise ScenarioError(f"{where}: {at}.name {e.name!r}: two estimators of that name")
+        if bool(e.use) == bool(e.command):
+            raise ScenarioError(f"{where}: {at} ({e.name}): give use (a Python class) or command (an external "
+                                "program), one of them")
+        if e.command:
+            try:
+                command_arguments(e.command, {k: k for k in COMMAND_FILES})
+            except ValueError as exc:
+                raise ScenarioError(f"{where}: {at}.command: {exc}") from None
+        if e.params and not e.use:
+            raise ScenarioError(f"{where}: {at}.params go with use (a Python class); a command takes its own "
+                                "arguments")
+        out.append(e)
+    return tuple(out)
 
 
 #: What a KITTI sequence directory holds (shared/data/README.md); map.osm is optional.

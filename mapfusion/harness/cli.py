@@ -746,8 +746,12 @@ def _load_runs(paths: list[Path]):
     """Scenarios of every file, the unavailable ones reported and left out; exit 2 on bad input."""
     from sim.scenario import load_family
 
+    from .estimators import load_class
+
     try:
         families = [load_family(p) for p in paths]
+        for use in sorted({s.use for fam in families for sc in fam.scenarios for s in sc.estimators if s.use}):
+            load_class(use)  # (every estimator's class importable before any run starts)
     except InputError as exc:
         _fail(str(exc))
     scenarios = [sc for fam in families for sc in fam.scenarios]
@@ -815,6 +819,9 @@ def run(
     failed_rows = [r for r in rows if "error" in r]
     for r in failed_rows:
         err_console.print(f"[red]{r['scenario']} failed:[/] {r['error']}", highlight=False)
+    for r in rows:
+        for name, why in r.get("estimator_errors", {}).items():
+            err_console.print(f"[red]{r['scenario']}: estimator {name} failed:[/] {why}", highlight=False)
     if failed_rows and len(failed_rows) == len(rows):
         raise typer.Exit(1)
 

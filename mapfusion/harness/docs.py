@@ -29,7 +29,8 @@ def _table(cls: type) -> list[str]:
 
 def configuration_markdown() -> str:
     """The configuration reference page."""
-    from sim.scenario import GpsConfig, ImuParams, KidnapConfig, RouteConfig, Scenario, TrafficConfig, WeatherConfig
+    from sim.scenario import (EstimatorSpec, GpsConfig, ImuParams, KidnapConfig, RouteConfig, Scenario, TrafficConfig,
+                              WeatherConfig)
     from sim.sensors import OdometryParams, WheelParams
 
     out = ["# Configuration reference", "",
@@ -48,7 +49,9 @@ def configuration_markdown() -> str:
                         "\"car\" | \"truck\"` picks the preset; any field below replaces the preset's; the gyro is "
                         "the `[imu]`'s)", WheelParams),
                        ("`[kidnap]`: the estimate knocked off after initialisation (issue 17; the `kidnapped` "
-                        "family)", KidnapConfig)):
+                        "family)", KidnapConfig),
+                       ("`[[estimators]]`: methods scored beside the odometry and Map-Fusion (one table each; "
+                        "docs/commands.md, \"Your own method\")", EstimatorSpec)):
         out += ["", f"## {title}", ""] + _table(cls)
     return "\n".join(out) + "\n"
 

@@ -41,6 +41,7 @@ class RunOutcome:
     baseline: FusionResult
     mapfusion: FusionResult
     road: RoadMap
+    others: dict = dataclasses.field(default_factory=dict)  # name → estimators.Track of the [[estimators]]
 
 
 def _online_arrays(res: FusionResult):
@@ -91,6 +92,10 @@ def _kidnap_metrics(res: FusionResult, truth: Truth, kidnap) -> dict:
 
 def _evaluate(res: FusionResult, truth: Truth, estimator: Estimator, deloc_m: float) -> dict:
     t, xyz, yaw, _ = _online_arrays(res)
+    return _evaluate_track(t, xyz, yaw, truth, estimator, deloc_m)
+
+
+def _evaluate_track(t, xyz, yaw, truth: Truth, estimator: Estimator | str, deloc_m: float) -> dict:
     e = truth
     ia, ib = associate(t, e.t_s)
     gt = np.column_stack([e.x_m, e.y_m, e.z_m])[ib]
@@ -211,10 +216,37 @@ def run_scenario(sc: Scenario, out_dir: str | Path | None = None, progress=None,
     GPS, evaluate both, and (with ``out_dir``) write every file of the run directory."""
     sim = simulate_scenario(sc, progress)
     metrics, base, mf = fuse_and_evaluate(sim, sc.mapfusion)
-    outcome = RunOutcome(metrics, sim.drive, sim.truth, sim.sensors, base, mf, sim.road)
+    others = score_estimators(sim, metrics) if sc.estimators and "error" not in metrics else {}
+    outcome = RunOutcome(metrics, sim.drive, sim.truth, sim.sensors, base, mf, sim.road, others)
     if out_dir is not None:
         write_run(Path(out_dir), sc, outcome, plot=plot)
     return outcome
+
+
+def score_estimators(sim: Simulation, metrics: dict) -> dict:
+    """The scenario's [[estimators]] on the simulation's inputs (those Map-Fusion got), each scored into
+    ``metrics`` (``ate_<name>_m`` ...) or, when it failed, its one line in ``metrics["estimator_errors"]``;
+    ``metrics["estimators"]`` lists their names. Returns name → the estimate scored."""
+    from .estimators import EstimatorError, run_estimator
+
+    sensors, road = sim.sensors, sim.road
+    fixes, motion = fixes_of(sensors, road), motion_of(sensors)
+    imu = (sensors.imu.t_s, sensors.imu.accel_mps2, sensors.imu.gyro_radps)
+    odo = sensors.odometry
+    tracks, errors = {}, {}
+    for spec in sim.sc.estimators:
+        try:
+            tr = run_estimator(spec, road, sim.sc.map, odo.t_s, odo.poses, fixes, motion, imu)
+            metrics.update(_evaluate_track(tr.t_s, tr.xyz_m, tr.yaw_rad, sim.truth, spec.name,
+                                           sim.sc.mapfusion.delocalization_m))
+            tracks[spec.name] = tr
+        except EstimatorError as exc:
+            errors[spec.name] = str(exc)
+    metrics["estimators"] = [s.name for s in sim.sc.estimators]
+    if errors:
+        metrics["estimator_errors"] = errors
+    metrics.update(non_finite_to_none({k: v for k, v in metrics.items() if isinstance(v, float)}))
+    return tracks
 
 
 def write_simulation(d: Path, sim: Simulation) -> None:
@@ -233,6 +265,12 @@ def write_run(d: Path, sc: Scenario, o: RunOutcome, plot: bool = True) -> None:
     write_simulation(d, Simulation(sc, o.road, o.truth, o.drive, o.sensors, math.nan))
     for name, res in (("estimate_odometry.tum", o.baseline), ("estimate_mapfusion.tum", o.mapfusion)):
         _write_online(res, d / name, f"{name[:-4]}: online (causal) estimates, map ENU frame")
+    for other, tr in o.others.items():
+        from scipy.spatial.transform import Rotation
+
+        q = Rotation.from_euler("z", np.asarray(tr.yaw_rad)[:, None]).as_quat()
+        write_tum(d / f"estimate_{other}.tum", tr.t_s, tr.xyz_m, q,
+                  header=f"estimate_{other}: the estimator {other}'s estimates (yaw only), map ENU frame")
     (d / "metrics.json").write_text(json.dumps(o.metrics, indent=2) + "\n")
     eng = o.mapfusion.engine
     events = {"map_prior_t": [float(t) for t in eng.map_prior_times()], "counters": eng.counters.as_dict(),

@@ -98,12 +98,15 @@ def plot_run(run_dir: str | Path, out: str | Path, road=None) -> Path:
     ax.plot(xy[:, 0], xy[:, 1], "k-", lw=1.6, label="truth", zorder=3)
     styles = {"estimate_odometry.tum": ("tab:blue", "odometry (no map)"),
               "estimate_mapfusion.tum": ("tab:red", "Map-Fusion")}
+    others = ["tab:purple", "tab:brown", "tab:pink", "tab:olive", "tab:cyan", "tab:gray"]
+    for i, other in enumerate(metrics.get("estimators", [])):  # the plug-in estimators, in their order
+        styles[f"estimate_{other}.tum"] = (others[i % len(others)], other)
     for name, (color, label) in styles.items():
         p = run / name
         if not p.exists():
             continue
         te, xe, _ = read_tum(p)
-        key = "odometry" if "odometry" in name else "mapfusion"
+        key = name.removeprefix("estimate_").removesuffix(".tum")
         ate = metrics.get(f"ate_{key}_m")
         ax.plot(xe[:, 0], xe[:, 1], "-", color=color, lw=1.0, zorder=4,
                 label=label + (f" (ATE {ate:.2f} m)" if ate is not None else ""))

@@ -27,18 +27,18 @@ class Estimator(str, enum.Enum):
     mapfusion = "mapfusion"
 
 
-def ate_key(e: Estimator) -> str:
-    return f"ate_{e.value}_m"
+def ate_key(e: Estimator | str) -> str:
+    return f"ate_{e.value if isinstance(e, Estimator) else e}_m"
 
 
-def delocalized_key(e: Estimator) -> str:
-    return f"delocalized_{e.value}"
+def delocalized_key(e: Estimator | str) -> str:
+    return f"delocalized_{e.value if isinstance(e, Estimator) else e}"
 
 
-def estimator_metrics(e: Estimator, ate_m: float, delocalized: bool, online: OnlineError, tunnel_rmse_m: float | None,
-                      rpe_100m_m: float | None) -> dict:
-    """The contract's per-estimator keys of one run."""
-    v = e.value
+def estimator_metrics(e: Estimator | str, ate_m: float, delocalized: bool, online: OnlineError,
+                      tunnel_rmse_m: float | None, rpe_100m_m: float | None) -> dict:
+    """The contract's per-estimator keys of one run (``e``: one of the two, or a plug-in's name)."""
+    v = e.value if isinstance(e, Estimator) else e
     return {ate_key(e): ate_m, delocalized_key(e): delocalized,
             f"online_rmse_{v}_m": online.rmse_m, f"online_max_{v}_m": online.max_m, f"online_end_{v}_m": online.end_m,
             f"online_lateral_rmse_{v}_m": online.lateral_rmse_m,

@@ -22,6 +22,27 @@ def _cell(r: dict, e: Estimator) -> str:
     return "x" if r[delocalized_key(e)] else f"{r[ate_key(e)]:.2f}"
 
 
+def others(rows: list[dict]) -> list[str]:
+    """The plug-in estimators ([[estimators]]) the rows scored, in their order of first appearance."""
+    names: list[str] = []
+    for r in rows:
+        names += [n for n in r.get("estimators", []) if n not in names]
+    return names
+
+
+def _other_cell(r: dict, name: str) -> str:
+    if not finished(r) or name in r.get("estimator_errors", {}):
+        return "failed"
+    if ate_key(name) not in r:
+        return "–"
+    return "x" if r[delocalized_key(name)] else f"{r[ate_key(name)]:.2f}"
+
+
+def _other_average(rows: list[dict], name: str) -> str:
+    kept = [r[ate_key(name)] for r in rows if finished(r) and ate_key(name) in r and not r[delocalized_key(name)]]
+    return _fmt(sum(kept) / len(kept) if kept else float("nan"))
+
+
 def _reduction(r: dict) -> str:
     if not finished(r) or r[delocalized_key(_O)] or r[delocalized_key(_M)]:
         return "NA"
@@ -29,21 +50,22 @@ def _reduction(r: dict) -> str:
 
 
 def paper_table(rows: list[dict], title: str, strip_prefix: str = "", width: int | None = None) -> Table:
-    """Runs as columns, rows odometry / + Map-Fusion / reduction (ATE, m); x = de-localised; the
-    average leaves the de-localised runs out, as the paper's tables do. When the columns would not
-    fit in ``width`` characters, the same table turned: a row per run, then Avg."""
+    """Runs as columns, rows odometry / + Map-Fusion / reduction (ATE, m), then a row per plug-in estimator;
+    x = de-localised; the average leaves the de-localised runs out, as the paper's tables do. When the columns
+    would not fit in ``width`` characters, the same table turned: a row per run, then Avg."""
     names = [r["scenario"].removeprefix(strip_prefix) for r in rows]
+    extra = others(rows)
     s = summarise(rows)
     averages = (_fmt(s.paper_odometry_m), _fmt(s.paper_mapfusion_m), _fmt(s.paper_reduction_m))
     t = Table(title=title, show_lines=False)
     needed = len("+ Map-Fusion") + sum(max(len(n), 7) + 3 for n in names) + 10
     if width is not None and needed > width:
         t.add_column("run", no_wrap=True)
-        for c in ("odometry", "+ Map-Fusion", "reduction"):
+        for c in ("odometry", "+ Map-Fusion", "reduction", *extra):
             t.add_column(c, justify="right")
         for n, r in zip(names, rows):
-            t.add_row(n, _cell(r, _O), _cell(r, _M), _reduction(r))
-        t.add_row("Avg", *averages, style="bold")
+            t.add_row(n, _cell(r, _O), _cell(r, _M), _reduction(r), *[_other_cell(r, e) for e in extra])
+        t.add_row("Avg", *averages, *[_other_average(rows, e) for e in extra], style="bold")
         return t
     t.add_column("ATE (m)", no_wrap=True)
     for n in names:
@@ -52,6 +74,8 @@ def paper_table(rows: list[dict], title: str, strip_prefix: str = "", width: int
     t.add_row("odometry", *[_cell(r, _O) for r in rows], averages[0])
     t.add_row("+ Map-Fusion", *[_cell(r, _M) for r in rows], averages[1])
     t.add_row("reduction", *[_reduction(r) for r in rows], averages[2], style="italic")
+    for e in extra:
+        t.add_row(e, *[_other_cell(r, e) for r in rows], _other_average(rows, e))
     return t
 
 
