@@ -14,7 +14,6 @@ import enum
 import itertools
 import os
 import re
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
