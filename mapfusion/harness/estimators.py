@@ -46,7 +46,8 @@ ENTRY_POINT_GROUP = "mapfusion.estimators"
 @runtime_checkable
 class StreamingEstimator(Protocol):
     """What a Python estimator implements. ``add_wheel_speed`` and ``add_imu`` are optional: a class without them
-    is not fed wheel or IMU samples."""
+    is not fed wheel or IMU samples. An offline method adds ``final_estimates() -> (t_s, poses)``: called once after
+    the last input, its answer is scored instead of the causal ``estimate()``s."""
 
     def add_odometry(self, t_s: float, relative_pose: np.ndarray) -> None:
         """The motion since the previous frame (4 × 4, body frame), at time ``t_s``."""
@@ -158,6 +159,14 @@ def run_python(spec: EstimatorSpec, road, t_odo: np.ndarray, poses: np.ndarray, 
         raise
     except Exception as exc:
         raise EstimatorError(f"{type(exc).__name__} at t = {t:.2f} s: {exc}") from None
+    if callable(getattr(est, "final_estimates", None)):  # an offline method: its answer after the whole drive
+        try:
+            t_all, final = est.final_estimates()
+            return _track([float(v) for v in t_all], [_pose_matrix(p) for p in final])
+        except EstimatorError:
+            raise
+        except Exception as exc:
+            raise EstimatorError(f"final_estimates(): {type(exc).__name__}: {exc}") from None
     return _track(out_t, out_p)
 
 
