@@ -386,11 +386,11 @@ class OfflineMapMatching:
         out = []
         sample_of = np.searchsorted(np.asarray(samples), np.arange(len(xy)), side="right") - 1
         for k, p in enumerate(self._pose):
-            c = chosen[int(sample_of[k])]
-            if c is None:
+            on = chosen[int(sample_of[k])]
+            if on is None:
                 out.append(p)
                 continue
-            e = c[0]
+            e = on[0]
             idx = np.arange(self.road.edge_start[e], self.road.edge_end[e])
             w = idx[int(np.argmin(np.hypot(*(self.road.xy_m[idx] - xy[k]).T)))]
             yaw_road = float(self.road.yaw_rad[w])
