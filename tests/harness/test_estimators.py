@@ -63,6 +63,8 @@ def _family(tmp_path: Path, estimators: str) -> Path:
     return fam
 
 
+@pytest.mark.slow
+@pytest.mark.sumo
 def test_an_estimator_written_outside_the_package_is_scored_beside_map_fusion(tmp_path):
     """The class above and its external twin (a script reading the run's files, writing TUM) on a family: both in
     results.jsonl, the table and the run directory, equal to 1e-9 m; a failing one fails its own column only."""
