@@ -864,11 +864,12 @@ def sweep(
     t = Table(title=f"mean ATE (m) over {len(scenarios)} run(s) per grid point")
     for k in grid:
         t.add_column(k, justify="right")
-    for c in ("runs", "failed", "odometry", "+ Map-Fusion", "de-localised"):
+    extra = sorted({k[4:-2] for v in table.values() for k in v if k.startswith("ate_")} - {"odometry", "mapfusion"})
+    for c in ("runs", "failed", "odometry", "+ Map-Fusion", "de-localised", *extra):
         t.add_column(c, justify="right")
     for v in table.values():
         t.add_row(*[str(v["params"][k]) for k in grid], str(v["runs"]), str(v["failed"]), f"{v['ate_odometry_m']:.2f}",
-                  f"{v['ate_mapfusion_m']:.2f}", str(v["delocalized"]))
+                  f"{v['ate_mapfusion_m']:.2f}", str(v["delocalized"]), *[f"{v[f'ate_{e}_m']:.2f}" for e in extra])
     console.print(t)
     png = plot_heatmap(table, grid, out / "sweep_heatmap.png", f"mean Map-Fusion ATE, {len(scenarios)} run(s)")
     console.print(f"{sims} simulation(s) for {left} fusion(s) this time; heatmap: {png}")

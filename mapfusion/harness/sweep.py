@@ -166,6 +166,11 @@ def sweep_task(job: tuple[Scenario, list[dict], dict[str, dict]]) -> list[dict]:
     except InputError as exc:
         return [{"scenario": sc.name, "seed": sc.seed, "scenario_sha256": digest, "params": p, "error": str(exc)}
                 for p in points]
+    others: dict = {}
+    if sc.estimators:  # (the plug-in estimators read no engine parameter: scored once, in every row)
+        from .pipeline import score_estimators
+
+        score_estimators(sim, others)
     rows, baselines = [], {}
     for i, params in enumerate(points):
         try:
@@ -174,6 +179,8 @@ def sweep_task(job: tuple[Scenario, list[dict], dict[str, dict]]) -> list[dict]:
             log.warning("%s at %s failed: %r", sc.name, params, exc)
             m = {"scenario": sc.name, "seed": sc.seed, "error": f"{type(exc).__name__}: {exc}",
                  "traceback": traceback.format_exc()}
+        if "error" not in m:
+            m.update(others)
         m["params"] = params
         m["scenario_sha256"] = digest
         m["simulated"] = i == 0
@@ -191,7 +198,18 @@ def mean_ate_table(rows: list[dict], grid: dict[str, list]) -> dict[str, dict]:
         s = summarise(r for r in rows if json.dumps(r.get("params", {}), sort_keys=True) == k)
         out[k] = {"params": p, "runs": s.runs, "failed": s.failed, "ate_mapfusion_m": s.mean_mapfusion_m,
                   "ate_odometry_m": s.mean_odometry_m, "delocalized": s.delocalized_mapfusion}
+        for name in others_of(rows):  # the plug-in estimators: their mean ATE over the runs that scored them
+            vals = [r[f"ate_{name}_m"] for r in rows if json.dumps(r.get("params", {}), sort_keys=True) == k
+                    and f"ate_{name}_m" in r]
+            out[k][f"ate_{name}_m"] = sum(vals) / len(vals) if vals else float("nan")
     return out
+
+
+def others_of(rows: list[dict]) -> list[str]:
+    """The plug-in estimators the rows name, in their order of first appearance."""
+    from .tables import others
+
+    return others(rows)
 
 
 def plot_heatmap(table: dict[str, dict], grid: dict[str, list], path: str | Path, title: str) -> Path:

@@ -111,3 +111,16 @@ def test_a_class_that_cannot_be_imported_is_refused_before_any_run(tmp_path):
     r = runner.invoke(app, ["run", str(fam), "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "no_such_module_x" in r.stderr and len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "o" / "results.jsonl").exists()
+
+
+@pytest.mark.slow
+@pytest.mark.sumo
+def test_a_sweep_scores_the_plug_ins_once_per_run_in_every_row(tmp_path):
+    fam = _family(tmp_path, '[[base.estimators]]\nname = "deadreck"\nuse = "tests.harness.test_estimators:GpsDeadReckoning"\n')
+    fam.write_text(fam.read_text().replace("seeds = [1, 2]", "seeds = [1]"))
+    r = runner.invoke(app, ["sweep", str(fam), "--out", str(tmp_path / "sw"), "-p", "lane_width_m=2,4", "-j", "1"])
+    assert r.exit_code == 0, r.output
+    rows = [json.loads(line) for line in (tmp_path / "sw" / "results.jsonl").read_text().splitlines()]
+    assert len(rows) == 2 and rows[0]["params"] != rows[1]["params"]
+    assert rows[0]["ate_deadreck_m"] == rows[1]["ate_deadreck_m"] > 0.0
+    assert "deadreck" in r.stdout
