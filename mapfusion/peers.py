@@ -34,7 +34,7 @@ GATE_CHI2 = 13.82
 
 
 #: Fixes a (re)start needs, and the least odometry movement (its own units) over them.
-MIN_START_FIXES, MIN_START_ODOMETRY = 5, 1e-3
+MIN_START_FIXES, MIN_START_ODOMETRY = 3, 1e-3
 
 
 def _yaw_of(m: np.ndarray) -> float:
@@ -70,13 +70,15 @@ class GpsOdometryEkf:
     that jumped, stalled or guessed across a gap), is replaced by wheel + gyro's own dead reckoning over it;
     without a wheel, a step faster than ``max_speed_mps`` is left out. Such a step's heading is uncertain by the
     gyro's bias over it (``gyro_bias_sigma_radps``: the simulated IMU's σ of its bias), so the fixes after a
-    tunnel pass the gate and put it right."""
+    tunnel pass the gate and put it right. Without a wheel, a step across an odometry gap longer than ``gap_s``
+    (a VO that lost track guesses the motion over it) starts the filter again from the fixes that follow
+    (dead-reckoning meanwhile)."""
 
     def __init__(self, road: RoadMap, pos_sigma_per_sqrt_m: float = 0.05, yaw_sigma_per_sqrt_m: float = 0.005,
-                 scale_sigma_per_sqrt_m: float = 0.002, gps_sigma_m: float = 2.0, init_baseline_m: float = 30.0,
-                 wheel_sigma_fraction: float = 0.02, gate_after_rejected: int = 5, veto_m: float = 1.0,
+                 scale_sigma_per_sqrt_m: float = 0.002, gps_sigma_m: float = 2.0, init_baseline_m: float = 20.0,
+                 wheel_sigma_fraction: float = 0.02, gate_after_rejected: int = 3, veto_m: float = 1.0,
                  veto_fraction: float = 0.5, veto_deg: float = 1.0, max_speed_mps: float = 70.0,
-                 gyro_bias_sigma_radps: float = 0.005) -> None:
+                 gyro_bias_sigma_radps: float = 0.005, gap_s: float = 1.0) -> None:
         if min(pos_sigma_per_sqrt_m, yaw_sigma_per_sqrt_m, scale_sigma_per_sqrt_m, gps_sigma_m, init_baseline_m,
                max_speed_mps) <= 0:
             raise ValueError("GpsOdometryEkf: every σ, init_baseline_m and max_speed_mps must be > 0")
@@ -87,6 +89,7 @@ class GpsOdometryEkf:
         self.veto_m, self.veto_fraction, self.max_speed_mps = veto_m, veto_fraction, max_speed_mps
         self.veto_rad = math.radians(veto_deg)
         self.gyro_bias_sigma = gyro_bias_sigma_radps
+        self.gap_s = gap_s
         self.odo = np.eye(4)  # the odometry's own pose (its frame)
         self.x: np.ndarray | None = None  # [x, y, yaw, ln s] once started
         self.P = np.zeros((4, 4))
@@ -144,6 +147,11 @@ class GpsOdometryEkf:
         elif dt > 0 and s * odo_m / dt > self.max_speed_mps:
             self.steps_vetoed += 1  # an impossible speed: a jump, left out
             dx = dy = dyaw = 0.0
+        elif dt > self.gap_s and not self._restarting:
+            # the odometry lost track and guessed its motion across the gap: start again from the next fixes
+            self.restarts += 1
+            self._restarting = True
+            self._window = []
         self._predict(dx, dy, dyaw)
         if extra is not None:
             self.P += np.diag([extra[1] ** 2, extra[1] ** 2, extra[0] ** 2, 0.0])
