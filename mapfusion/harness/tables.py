@@ -88,6 +88,7 @@ def table_one(rows: list[dict], title: str) -> Table:
         return Path(r.get("recorded", r["scenario"])).name
 
     columns = sorted({seq(r) for r in rows})
+    extra = others(rows)
     groups = sorted({(r.get("odometry", "?"), r.get("weather", "?")) for r in rows})
     t = Table(title=title, show_lines=False)
     t.add_column("ATE (m)", no_wrap=True)
@@ -115,7 +116,17 @@ def table_one(rows: list[dict], title: str) -> Table:
         t.add_row(label, *[show(st, a) for st, a, _ in cells], avg([a for a, _ in ok]))
         t.add_row(f"{label} + Map-Fusion", *[show(st, b) for st, _, b in cells], avg([b for _, b in ok]))
         red = [f"{a - b:.2f}" if st == "ok" and a == a and b == b else "NA" for st, a, b in cells]
-        t.add_row("reduction", *red, avg([a - b for a, b in both]), style="italic", end_section=True)
+        t.add_row("reduction", *red, avg([a - b for a, b in both]), style="italic", end_section=not extra)
+        for n, e in enumerate(extra):  # the plug-in estimators: the paper average of their runs per sequence
+            vals = []
+            for c in columns:
+                runs = [r for r in rows if seq(r) == c and (r.get("odometry"), r.get("weather")) == (odo, weather)]
+                scored = [r for r in runs if finished(r) and ate_key(e) in r]
+                kept = [r[ate_key(e)] for r in scored if not r[delocalized_key(e)]]
+                state = "" if not runs else "ok" if scored else "failed"
+                vals.append((state, sum(kept) / len(kept) if kept else float("nan")))
+            t.add_row(f"{label} {e}", *[show(st, v) for st, v in vals], avg([v for st, v in vals if st == "ok"]),
+                      end_section=n == len(extra) - 1)
     return t
 
 

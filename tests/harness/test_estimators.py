@@ -124,3 +124,34 @@ def test_a_sweep_scores_the_plug_ins_once_per_run_in_every_row(tmp_path):
     assert len(rows) == 2 and rows[0]["params"] != rows[1]["params"]
     assert rows[0]["ate_deadreck_m"] == rows[1]["ate_deadreck_m"] > 0.0
     assert "deadreck" in r.stdout
+
+
+def test_the_tables_show_a_row_per_plug_in():
+    """The paper table and Table I: a row per plug-in, its Avg leaving its de-localised runs out, `failed` where
+    it failed on a run."""
+    from io import StringIO
+
+    from rich.console import Console
+
+    from mapfusion.harness.tables import paper_table, table_one
+
+    def row(seq, seed, ekf, deloc=False, failed=False):
+        r = {"scenario": f"kitti-{seq}-clear-vo-s{seed}", "recorded": f"/d/kitti/{seq}", "odometry": "vo",
+             "weather": "clear", "ate_odometry_m": 5.0, "ate_mapfusion_m": 2.0, "ate_reduction_m": 3.0,
+             "delocalized_odometry": False, "delocalized_mapfusion": False, "estimators": ["ekf"]}
+        if failed:
+            r["estimator_errors"] = {"ekf": "boom"}
+        else:
+            r.update({"ate_ekf_m": ekf, "delocalized_ekf": deloc})
+        return r
+
+    rows = [row("00", 1, 4.0), row("00", 2, 30.0, deloc=True), row("05", 1, 0.0, failed=True), row("07", 1, 6.0)]
+
+    def cells(table):
+        buf = StringIO()
+        Console(file=buf, width=250).print(table)
+        return {ln.split("│")[1].strip(): [c.strip() for c in ln.split("│")[2:-1]] for ln in buf.getvalue().splitlines()
+                if ln.startswith("│")}
+
+    assert cells(paper_table(rows, "t"))["ekf"] == ["4.00", "x", "failed", "6.00", "5.00"]
+    assert cells(table_one(rows, "t"))["VO clear ekf"] == ["4.00", "failed", "6.00", "5.00"]
