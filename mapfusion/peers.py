@@ -346,8 +346,6 @@ class OfflineMapMatching:
     def final_estimates(self) -> tuple[np.ndarray, list[np.ndarray]]:
         """Every frame the EKF estimated, its position on the road the match chose (the EKF's own where no road
         lies within the radius): (t_s, 4 × 4 poses)."""
-        from scipy.sparse.csgraph import dijkstra
-
         if not self._pose:
             return np.empty(0), []
         xy = np.array([p[:2, 3] for p in self._pose])
@@ -356,16 +354,29 @@ class OfflineMapMatching:
         for k in range(1, len(xy)):
             if along[k] - along[samples[-1]] >= self.step_m:
                 samples.append(k)
-        cands = [self._candidates(xy[k]) for k in samples]
+        chosen = self._viterbi([self._candidates(xy[k]) for k in samples], along[samples])
+        sample_of = np.searchsorted(np.asarray(samples), np.arange(len(xy)), side="right") - 1
+        out = []
+        for k, p in enumerate(self._pose):
+            on = chosen[int(sample_of[k])]
+            out.append(p if on is None else self._on_road(on[0], xy[k], _yaw_of(p)))
+        return np.asarray(self._t), out
+
+    def _viterbi(self, cands: list[list[tuple[int, int, float]]], along_m: np.ndarray
+                 ) -> list[tuple[int, int, float] | None]:
+        """The most probable candidate of each sample, one Viterbi pass over each stretch of samples that all
+        have candidates (None for a sample without)."""
+        from scipy.sparse.csgraph import dijkstra
+
         limit = 4.0 * self.step_m + 2.0 * self.radius_m + 100.0
-        chosen: list[tuple[int, int, float] | None] = [None] * len(samples)
+        chosen: list[tuple[int, int, float] | None] = [None] * len(cands)
         i = 0
-        while i < len(samples):  # one Viterbi pass over each stretch whose samples all have candidates
+        while i < len(cands):
             if not cands[i]:
                 i += 1
                 continue
             j = i
-            while j + 1 < len(samples) and cands[j + 1]:
+            while j + 1 < len(cands) and cands[j + 1]:
                 j += 1
             score = [-0.5 * (c[2] / self.sigma_m) ** 2 for c in cands[i]]
             back: list[list[int]] = []
@@ -374,7 +385,7 @@ class OfflineMapMatching:
                 verts = sorted({int(v) for e, _, _ in prev for v in (self.road.edge_u[e], self.road.edge_v[e])})
                 dist = dijkstra(self.graph, directed=False, indices=verts, limit=limit)
                 from_vertex = {v: dist[r] for r, v in enumerate(verts)}
-                moved = along[samples[n]] - along[samples[n - 1]]
+                moved = float(along_m[n] - along_m[n - 1])
                 new_score, pointers = [], []
                 for c in cur:
                     emit = -0.5 * (c[2] / self.sigma_m) ** 2
@@ -391,22 +402,16 @@ class OfflineMapMatching:
                 if n > i:
                     a = back[n - i - 1][a]
             i = j + 1
-        out = []
-        sample_of = np.searchsorted(np.asarray(samples), np.arange(len(xy)), side="right") - 1
-        for k, p in enumerate(self._pose):
-            on = chosen[int(sample_of[k])]
-            if on is None:
-                out.append(p)
-                continue
-            e = on[0]
-            idx = np.arange(self.road.edge_start[e], self.road.edge_end[e])
-            w = idx[int(np.argmin(np.hypot(*(self.road.xy_m[idx] - xy[k]).T)))]
-            yaw_road = float(self.road.yaw_rad[w])
-            yaw_est = _yaw_of(p)
-            if math.cos(yaw_road - yaw_est) < 0:  # the road's direction the vehicle drives
-                yaw_road += math.pi
-            m = np.eye(4)
-            m[:2, :2] = [[math.cos(yaw_road), -math.sin(yaw_road)], [math.sin(yaw_road), math.cos(yaw_road)]]
-            m[:2, 3] = self.road.xy_m[w]
-            out.append(m)
-        return np.asarray(self._t), out
+        return chosen
+
+    def _on_road(self, edge: int, xy: np.ndarray, yaw_est: float) -> np.ndarray:
+        """The pose at the edge's way-point nearest ``xy``, heading along the road the way the estimate heads."""
+        idx = np.arange(self.road.edge_start[edge], self.road.edge_end[edge])
+        w = idx[int(np.argmin(np.hypot(*(self.road.xy_m[idx] - xy).T)))]
+        yaw = float(self.road.yaw_rad[w])
+        if math.cos(yaw - yaw_est) < 0:  # the road's direction the vehicle drives
+            yaw += math.pi
+        m = np.eye(4)
+        m[:2, :2] = [[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]]
+        m[:2, 3] = self.road.xy_m[w]
+        return m
