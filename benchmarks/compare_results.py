@@ -1,8 +1,8 @@
 """Do two revisions give the same results? (issue 21: speed-ups must leave every result unchanged)
 
-Simulates drives of five families once (with this checkout's simulator), then fuses each under both
-revisions' engines (a git worktree each, run in a fresh process) with five configurations — the
-defaults, road hypotheses, centre-line and band priors, matching continuity — and compares every
+Simulates drives of six families once (with this checkout's simulator), then fuses each under both
+revisions' engines (a git worktree each, run in a fresh process) with four configurations — the
+defaults, centre-line and band priors, matching continuity — and compares every
 smoothed and online pose and every metric. Prints the largest difference; exits 1 if any exceeds 1e-9.
 
 Run from the repo root: python benchmarks/compare_results.py c5e51d6 [HEAD]   (MAPFUSION_DATA set)
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 FAMILIES = [("intersections", [0, 3, 5, 9, 12]), ("rain-tunnel", [0, 2, 4, 7]), ("kitti", [0, 3, 9]),
-            ("heavy-rain", [0, 1]), ("rain", [1, 4])]
+            ("heavy-rain", [0, 1]), ("rain", [1, 4]), ("kidnapped", [0, 2, 5, 7])]
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -38,10 +38,10 @@ def simulate(out: Path) -> None:
 
 def fuse(sims_path: Path, out: Path) -> None:
     from mapfusion import RoadMap
-    from mapfusion.config import PriorTarget, RoadTracking
+    from mapfusion.config import PriorTarget
     from mapfusion.harness.pipeline import fuse_and_evaluate
 
-    configs = {"default": {}, "hmm": {"road_tracking": RoadTracking.hmm}, "centre": {"prior_target": PriorTarget.centre},
+    configs = {"default": {}, "centre": {"prior_target": PriorTarget.centre},
                "band": {"prior_target": PriorTarget.band}, "continuity": {"match_continuity": True}}
     res = {}
     for s in pickle.loads(sims_path.read_bytes()):

@@ -22,17 +22,12 @@ import gtsam
 import numpy as np
 
 from . import factors
-from .config import FusionConfig, PriorTarget, RoadTracking, TrafficSide
+from .config import FusionConfig, PriorTarget, TrafficSide
 from .counters import Counters
 from .geometry import on_line
-from .hypotheses import RoadHypotheses, Step, candidates
-from .matcher import Match, lateral_bound_ok, map_pose, match, match_candidates, match_range
+from .matcher import Match, lateral_bound_ok, map_pose, match, match_candidates
 from .roadmap import RoadMap
 
-
-#: Edges of at most this many way-points are scanned whole for the tracked road's best way-point
-#: (cheaper than a radius query); a longer one's are taken from the query.
-EDGE_SCAN_MAX = 1024
 
 #: Distances within this of reloc_gps_fit_m count as covering it (the running sums' rounding decides nothing).
 FIT_TIE_M = 1e-6
@@ -67,11 +62,8 @@ class MapAssociation:
         if cfg.use_map:
             _ = road.cells  # the map's cell index, built with the engine rather than inside its first frame
         self._robust = factors.robust_kernel(cfg)
-        self.hmm = RoadHypotheses(road, cfg) if cfg.road_tracking is RoadTracking.hmm else None
-        self._moved_m = math.inf  # odometry distance since the last filter step (inf: step now)
-        self._last: Step | None = None
         self._unexplained_m = 0.0
-        self.lost = False  # no road explains the estimate (lost_events: hmm, or single-frame with map_relocalisation)
+        self.lost = False  # no road explains the estimate (watched with map_relocalisation: lost_events)
         self.became_lost = False  # set when the estimate becomes lost; the engine clears it
         self.explained_xy: tuple[float, float] | None = None  # the estimate where a road last explained it
         self._since_prior_m = math.inf  # odometry distance since the last map prior
@@ -84,51 +76,19 @@ class MapAssociation:
         """Forget the last road (after a re-localisation)."""
         self.edge = -1
         self._unexplained_m, self.lost = 0.0, False
-        if self.hmm is not None:
-            self.hmm.reset()
-            self._moved_m, self._last = math.inf, None
-
-    def _tracked_match(self, pred: gtsam.Pose3, moved_m: float) -> tuple[Match | None, bool]:
-        """The match on the most probable road of the hypotheses, and whether it is confident. The
-        filter steps once per ``hmm_step_m`` of odometry; in between the last step's road is used."""
-        assert self.hmm is not None
-        cfg, road = self.cfg, self.road
-        x, y, yaw = pred.x(), pred.y(), pred.rotation().yaw()
-        radius, w = cfg.search_radius_m, cfg.angle_weight_m_per_deg
-        near = None
-        self._moved_m += moved_m
-        if self._moved_m >= cfg.hmm_step_m:  # (the query only here: between steps the tracked edge suffices)
-            near = road.query_radius(x, y, radius)
-            step_m = 0.0 if self._moved_m == math.inf else self._moved_m
-            self._last = self.hmm.step(candidates(road, near, x, y, yaw, w), step_m)
-            self._moved_m = 0.0
-            self._watch_lost(self._last.explained, step_m, pred)
-        st = self._last
-        if st is None or st.best is None:
-            return None, False
-        edge = st.best.edge
-        a, b = int(road.edge_start[edge]), int(road.edge_end[edge])
-        if b - a <= EDGE_SCAN_MAX:
-            m = match_range(road, a, b, x, y, yaw, radius, w)  # None: moved off that road since the last step
-        else:
-            near = road.query_radius(x, y, radius) if near is None else near
-            on_edge = near[road.edge[near] == edge]
-            m = match(road, x, y, yaw, radius, w, candidates=on_edge) if on_edge.size else None
-        return m, m is not None and st.posterior >= cfg.hmm_min_posterior
 
     def _watch_lost(self, explained: bool, moved_m: float, pred: gtsam.Pose3) -> None:
-        """Lost after ``hmm_lost_after_m`` of unexplained steps; found again at the next explained one."""
+        """Lost after ``lost_after_m`` of driving unexplained (no road within ``lost_cost_m`` of D); found again at
+        the next explained frame."""
         if explained:
             self._unexplained_m, self.lost = 0.0, False
             self.explained_xy = (pred.x(), pred.y())
             return
         self._unexplained_m += moved_m
-        if not self.lost and self._unexplained_m >= self.cfg.hmm_lost_after_m:
+        if not self.lost and self._unexplained_m >= self.cfg.lost_after_m:
             self.lost = True
             self.became_lost = True
             self.counters.lost_events += 1
-            if self.hmm is not None:
-                self.hmm.reset()
 
     def _record_fit(self, m: Match | None, moved_m: float) -> None:
         """One frame of the estimate's path: on a road (within its width + ``reloc_gps_fit_margin_m`` of the
@@ -225,12 +185,9 @@ class MapAssociation:
               lat_sigma_m: float = 0.0) -> tuple[Match | None, gtsam.PriorFactorPose3 | None]:
         """The match of frame k's predicted pose and, if the map should correct it, its prior."""
         moved_m = math.hypot(step.x(), step.y())
-        if self.hmm is not None:
-            m, confident = self._tracked_match(pred, moved_m)
-        else:
-            m, confident = self.match(pred), False
-            if self.cfg.map_relocalisation:  # (the single-frame path watches for lost only when it can act on it)
-                self._watch_lost(m is not None and m.cost <= self.cfg.hmm_lost_cost_m, moved_m, pred)
+        m = self.match(pred)
+        if self.cfg.map_relocalisation:  # (lost is watched for only where it is acted on)
+            self._watch_lost(m is not None and m.cost <= self.cfg.lost_cost_m, moved_m, pred)
         self._since_prior_m += moved_m
         if self.cfg.map_relocalisation and self.cfg.reloc_gps_fit_min > 0:
             self._record_fit(m, moved_m)
@@ -247,11 +204,7 @@ class MapAssociation:
             lateral = abs(r_pose.transformTo(pred.translation())[1])
         if lateral <= width:
             return m, None
-        # a confident road hypothesis replaces the single-frame gates: its heading is a valid
-        # measurement even when the estimate's is far off (heading recovery), and a split posterior
-        # (the ambiguity the gates guessed at) never reaches here
-        blocked = (not confident) if self.hmm is not None else self.gated(m, pred, lateral, width, pos_sigma_m)
-        if blocked:
+        if self.gated(m, pred, lateral, width, pos_sigma_m):
             self.counters.priors_gated += 1
             return m, None
         if self.cfg.prior_target is PriorTarget.band:

@@ -15,7 +15,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from .errors import ConfigError
 
@@ -130,6 +130,9 @@ def from_mapping(cls: type, data: dict, where: str = "config", prefix: str = "")
         raise ConfigError(f"{where}: [{prefix.rstrip('.')}] must be a table")
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    retired: dict[str, str] = getattr(cls, "RETIRED_KEYS", {})
+    for key in sorted(set(data) & set(retired)):
+        raise ConfigError(f"{where}: {prefix}{key} {retired[key]}")
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ConfigError(
@@ -260,16 +263,19 @@ class Factorization(str, enum.Enum):
     cholesky = "CHOLESKY"
 
 
-class RoadTracking(str, enum.Enum):
-    """How the engine decides which road a map prior comes from (DESIGN item 8)."""
-
-    single_frame = "single_frame"  # each frame's best match by D = E + w·A, with the gates (the paper)
-    hmm = "hmm"  # road hypotheses over time: an online HMM on the road graph (issue 16)
-
-
 @dataclass(frozen=True)
 class FusionConfig:
     """Parameters of the Map-Fusion engine; the ``[mapfusion]`` table of a scenario file."""
+
+    #: Keys a scenario file may still hold, with what became of them (the loader refuses them with this line).
+    RETIRED_KEYS: ClassVar[dict[str, str]] = {
+        "road_tracking": "was removed: the map prior's road is each frame's match (the road hypotheses remain in "
+                         "mapfusion maps stress --sequence)",
+        **{f"hmm_{k}": "was removed with road_tracking" for k in ("emission_scale_m", "transition_scale_m",
+                                                                  "jump_penalty", "beam", "min_posterior", "step_m")},
+        "hmm_lost_cost_m": "is renamed lost_cost_m",
+        "hmm_lost_after_m": "is renamed lost_after_m",
+    }
 
     lane_width_m: float = param(
         3.0,
@@ -753,38 +759,18 @@ class FusionConfig:
         source="speed (mapfusion bench)",
     )
     factorization: Factorization = param(Factorization.qr, "QR or CHOLESKY for ISAM2.", source="DESIGN item 7")
-    road_tracking: RoadTracking = param(RoadTracking.single_frame, "single_frame (each frame's best match, with the "
-                                        "angle and ambiguity gates) or hmm (road hypotheses over time: a prior only "
-                                        "from a road whose posterior is at least hmm_min_posterior).",
-                                        source="DESIGN item 8; issue 16")
-    hmm_emission_scale_m: float = param(20.0, "The emission's log-likelihood is −D / this (D = E + w·A at the "
-                                        "candidate's foot): about the D a pose's own errors make.", unit="m",
-                                        min=0.0, exclusive_min=True,
-                                        source="issue 16; maps stress --sequence, seeds 0–7 (was 5)")
-    hmm_transition_scale_m: float = param(0.5, "β of Newson & Krumm: the transition's log-probability is "
-                                          "−|network distance − odometry distance| / β.", unit="m", min=0.0,
-                                          exclusive_min=True,
-                                          source="Newson & Krumm 2009; maps stress --sequence, seeds 0–7 (was 5)")
-    hmm_jump_penalty: float = param(10.0, "Log-probability cost of a transition the road graph does not join (a "
-                                    "wrong history can still be left).", min=0.0, source="issue 16; by measurement")
-    hmm_beam: int = param(8, "Hypotheses kept after each step.", min=1, max=1000, source="issue 16; speed")
-    hmm_min_posterior: float = param(0.9, "A map prior comes only from a road with at least this posterior; below "
-                                     "it (junctions, parallel roads) no prior until it resolves.", min=0.0, max=1.0,
-                                     source="issue 16; by measurement")
-    hmm_step_m: float = param(5.0, "Odometry distance between two filter steps (between them the prior comes from "
-                              "the last step's road).", unit="m", min=0.0, exclusive_min=True, source="speed")
-    hmm_lost_cost_m: float = param(20.0, "A step is unexplained when every candidate's D exceeds this.", unit="m",
-                                   min=0.0, exclusive_min=True, source="issue 16 (divergence detection)")
-    hmm_lost_after_m: float = param(100.0, "The estimate is lost after this much driving with unexplained steps (or no "
-                                    "road in range).", unit="m", min=0.0, exclusive_min=True,
-                                    source="issue 16 (divergence detection)")
-    map_relocalisation: bool = param(False, "When the estimate is lost (no road explains it for hmm_lost_after_m), "
+    lost_cost_m: float = param(20.0, "A frame is unexplained by the map when no road's D = E + w·A is within this.",
+                               unit="m", min=0.0, exclusive_min=True, source="issue 16 (divergence detection)")
+    lost_after_m: float = param(100.0, "The estimate is lost after this much driving unexplained by the map (or with "
+                                "no road in range); watched with map_relocalisation.", unit="m", min=0.0,
+                                exclusive_min=True, source="issue 16 (divergence detection)")
+    map_relocalisation: bool = param(False, "When the estimate is lost (no road explains it for lost_after_m), "
                                      "re-localise it on the road network from the odometry's shape alone and "
                                      "re-anchor the smoother there.", source="issue 17 (Brubaker et al. 2013, Lost!)")
     reloc_particles: int = param(60000, "Particles of the global re-localisation, spread over the region's roads.",
                                  min=10, max=2_000_000, source="issue 17; speed (10 Hz on one core, 2 km radius)")
     reloc_step_m: float = param(5.0, "Odometry distance between two re-localisation steps.", unit="m", min=0.5,
-                                max=100.0, source="issue 17; as hmm_step_m")
+                                max=100.0, source="issue 17")
     reloc_sigma_m: float = param(1.5, "σ of a step's displacement mismatch (road against odometry), constant part.",
                                  unit="m", min=0.01, max=100.0, source="issue 17; by measurement")
     reloc_sigma_per_m: float = param(0.15, "σ of a step's displacement mismatch, per metre of the step (heading and "

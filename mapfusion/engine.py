@@ -119,7 +119,7 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
         self.alignment: Alignment | None = None
         self.initialised_at: float | None = None
         self.map_prior_frames: list[int] = []
-        self.lost_s = 0.0  # time the road hypotheses held the estimate lost (road_tracking = hmm)
+        self.lost_s = 0.0  # time the association held the estimate lost (map_relocalisation)
         self.matched_way: list[int] = []  # OSM way the matcher chose at each frame (-1: none)
         self._association = MapAssociation(road, self.cfg, self.counters)
         self._gate = GpsGate(self.cfg)

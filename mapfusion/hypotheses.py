@@ -3,24 +3,23 @@ Markov model over the road graph's edges and travel directions.
 
 At every step the candidates are the (edge, direction) pairs with a way-point within the search
 radius of the predicted pose (a one-way edge in its legal direction only). A candidate's emission is
-the paper's matching cost taken as a negative log-likelihood, −D / ``hmm_emission_scale_m`` with D =
+the paper's matching cost taken as a negative log-likelihood, −D / ``emission_scale_m`` with D =
 E + w·A at the candidate's foot: the edge's way-point nearest the pose, in the candidate's own
 direction. (Not the edge's least D: on a curve that way-point slides along the road to wherever the
 road's direction matches the heading's error, which both flatters a curved road and moves the
 candidate's position by metres a step.) Transitions follow Newson & Krumm (2009): the network
 distance between the previous hypothesis and the candidate (each at the pose projected onto its
 road), along the edge or through the vertex the previous edge leads to, should equal the distance
-the odometry moved; the log-probability is −|d_network − d_odometry| / ``hmm_transition_scale_m``.
-A jump the graph does not join costs ``hmm_jump_penalty`` (so a wrong history can still be left).
-The forward filter keeps the ``hmm_beam`` most probable hypotheses, normalised to a posterior that
-sums to one.
+the odometry moved; the log-probability is −|d_network − d_odometry| / ``transition_scale_m``.
+A jump the graph does not join costs ``jump_penalty`` (so a wrong history can still be left).
+The forward filter keeps the ``beam`` most probable hypotheses, normalised to a posterior that
+sums to one (:class:`HmmParams`).
 
-The engine asks for a map prior only from the most probable road, and only when its posterior
-is at least ``hmm_min_posterior``: at a junction, beside a parallel road or above a tunnel the
-posterior is split and no prior is added until it resolves. The hypotheses also say when the
-estimate is *lost*: no candidate in range, or every candidate's D above ``hmm_lost_cost_m``. A step
-with no road in range carries the hypotheses forward along their roads (a wide road's far side or a
-few metres beyond the radius say nothing about which road it was); being lost resets them.
+It backs ``mapfusion maps stress --sequence``, which matches drives through every junction as
+sequences beside the single-frame matcher. A step's answer says whether some candidate's D is under
+``lost_cost_m`` (the road explains the pose); a step with no road in range carries the hypotheses
+forward along their roads (a wide road's far side or a few metres beyond the radius say nothing
+about which road it was).
 """
 
 from __future__ import annotations
@@ -30,10 +29,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .config import FusionConfig
 from .roadmap import RoadMap
 
 Key = tuple[int, int]  # (edge, direction: +1 along the drawing direction, −1 against it)
+
+
+@dataclass(frozen=True)
+class HmmParams:
+    """The filter's parameters."""
+
+    emission_scale_m: float = 20.0  # m; −D / this is a candidate's log-likelihood: about the D a pose's own errors
+    # make (maps stress --sequence, seeds 0–7)
+    transition_scale_m: float = 0.5  # m; β of Newson & Krumm 2009 (maps stress --sequence, seeds 0–7)
+    jump_penalty: float = 10.0  # log-probability of a transition the road graph does not join
+    beam: int = 8  # hypotheses kept after each step (speed)
+    lost_cost_m: float = 20.0  # m; a step is unexplained when every candidate's D exceeds this
+
+    def __post_init__(self) -> None:
+        if not (self.emission_scale_m > 0 and self.transition_scale_m > 0 and self.jump_penalty >= 0
+                and self.beam >= 1 and self.lost_cost_m > 0):
+            raise ValueError(f"HmmParams out of range: {self}")
 
 
 @dataclass(frozen=True)
@@ -54,7 +69,7 @@ class Step:
     best: Candidate | None  # the most probable road, or None without candidates
     posterior: float  # its posterior probability
     hypotheses: int  # how many the beam holds
-    explained: bool  # some candidate's D is under hmm_lost_cost_m
+    explained: bool  # some candidate's D is under lost_cost_m
 
 
 def candidates(road: RoadMap, near: np.ndarray, x: float, y: float, yaw: float, w: float) -> list[Candidate]:
@@ -90,8 +105,8 @@ def candidates(road: RoadMap, near: np.ndarray, x: float, y: float, yaw: float, 
 class RoadHypotheses:
     """The forward filter over (edge, direction) hypotheses."""
 
-    def __init__(self, road: RoadMap, cfg: FusionConfig) -> None:
-        self.cfg = cfg
+    def __init__(self, road: RoadMap, params: HmmParams = HmmParams()) -> None:
+        self.params = params
         self.logp: dict[Key, float] = {}
         self.along: dict[Key, float] = {}
         # as Python lists: the filter reads single entries, a numpy scalar read costs several times more
@@ -132,10 +147,10 @@ class RoadHypotheses:
     def step(self, cands: list[Candidate], moved_m: float) -> Step:
         """One forward step with the candidates at the new pose and the odometry's distance since
         the last step."""
-        cfg = self.cfg
+        cfg = self.params
         if not cands:
             return self._coast(moved_m)
-        emission = {(c.edge, c.direction): -c.cost / cfg.hmm_emission_scale_m for c in cands}
+        emission = {(c.edge, c.direction): -c.cost / cfg.emission_scale_m for c in cands}
         new: dict[Key, float] = {}
         for c in cands:
             key = (c.edge, c.direction)
@@ -145,22 +160,21 @@ class RoadHypotheses:
             terms = []
             for prev, lp in self.logp.items():
                 d = self._network_m(prev, self.along[prev], c)
-                trans = -cfg.hmm_jump_penalty if d is None else -abs(d - moved_m) / cfg.hmm_transition_scale_m
+                trans = -cfg.jump_penalty if d is None else -abs(d - moved_m) / cfg.transition_scale_m
                 terms.append(lp + trans)
             new[key] = emission[key] + _logsumexp(terms)
-        keep = sorted(new, key=lambda k: new[k], reverse=True)[: cfg.hmm_beam]
+        keep = sorted(new, key=lambda k: new[k], reverse=True)[: cfg.beam]
         norm = _logsumexp([new[k] for k in keep])
         self.logp = {k: new[k] - norm for k in keep}
         by_key = {(c.edge, c.direction): c for c in cands}
         self.along = {k: by_key[k].along_m for k in keep}
         best = by_key[keep[0]]
-        explained = min(c.cost for c in cands) <= cfg.hmm_lost_cost_m
+        explained = min(c.cost for c in cands) <= cfg.lost_cost_m
         return Step(best, math.exp(self.logp[keep[0]]), len(keep), explained)
 
     def _coast(self, moved_m: float) -> Step:
         """A step with no road in range: the hypotheses carried forward along their roads unchanged
-        (a gap of a few metres in the map's reach says nothing about which road it was; the engine
-        calls the estimate lost after ``hmm_lost_after_m`` of such steps)."""
+        (a gap of a few metres in the map's reach says nothing about which road it was)."""
         if not self.logp:
             return Step(None, 0.0, 0, False)
         for (edge, direction), s in self.along.items():

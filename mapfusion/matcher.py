@@ -163,17 +163,6 @@ def match(
     return _make_match(road, int(idx[k]), rev, x, y, e, a, d)
 
 
-def match_range(road: RoadMap, start: int, stop: int, x: float, y: float, yaw: float, radius: float,
-                angle_weight_m_per_deg: float = DEFAULT_ANGLE_WEIGHT_M_PER_DEG) -> Match | None:
-    """:func:`match` among the way-points ``start:stop`` (an edge's) within ``radius`` of (x, y)."""
-    found = _best(road.xy_complex[start:stop], road.legal_cos[start:stop], road.legal_sin[start:stop],
-                  road.two_way_sign[start:stop], x, y, yaw, angle_weight_m_per_deg, radius)
-    if found is None:
-        return None
-    k, rev, e, a, d = found
-    return _make_match(road, start + k, rev, x, y, e, a, d)
-
-
 def lateral_bound_ok(m: Match, pose_matrix: np.ndarray, width_m: float, centre_m: float = 0.0) -> bool:
     """True when :func:`map_pose`'s signed lateral offset for this pose is surely within ``width_m`` of
     ``centre_m`` (left positive) — decided without building R_t. R_t shares the pose's pitch and roll, so the

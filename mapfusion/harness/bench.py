@@ -409,7 +409,7 @@ def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (1
     measured in the same run and the ratio to it. The engine and its anchor run ``repeats`` times,
     interleaved (a shared machine's load drifts between runs; neighbours see the same load): the
     figures are medians, each ratio the median of the rounds' ratios. ``config``: the engine's
-    FusionConfig (default: the defaults; the road-hypotheses line adds ``road_tracking = "hmm"``).
+    FusionConfig (default: the defaults).
     ``map_path``: a map (a built-in name or an OSM file) every line measures in place of the synthetic city
     of ``city_km``; each line names its map. Raises MapFileError (missing, not OSM) or MapContentError (nothing
     drivable) for a map that is not one."""
@@ -434,39 +434,28 @@ def run_benchmarks(duration_s: float = 3600.0, city_km: tuple[float, float] = (1
 
 
 def _timed_lines(road: RoadMap, duration_s: float, repeats: int, config):
-    """The engine, road-hypotheses, search and matcher lines of :func:`run_benchmarks` on one map."""
-    import dataclasses
-
-    from mapfusion.config import FusionConfig, RoadTracking
+    """The engine, search and matcher lines of :func:`run_benchmarks` on one map."""
+    from mapfusion.config import FusionConfig
 
     cfg = config or FusionConfig()
-    hmm_cfg = dataclasses.replace(cfg, road_tracking=RoadTracking.hmm)
     rounds = []
     for _ in range(max(1, repeats)):
         bare = bench_bare_chain(road, duration_s=duration_s)
         eng = bench_engine(road, duration_s=duration_s, config=cfg)
-        hmm = bench_engine(road, duration_s=duration_s, config=hmm_cfg)
-        rounds.append((bare, eng, hmm))
+        rounds.append((bare, eng))
     med = lambda xs: float(np.median(xs))  # noqa: E731
-    bare_fps = [b for b, _, _ in rounds]
-    eng_fps = [e.frames_per_s for _, e, _ in rounds]
-    hmm_fps = [h.frames_per_s for _, _, h in rounds]
+    bare_fps = [b for b, _ in rounds]
+    eng_fps = [e.frames_per_s for _, e in rounds]
     eng_ratio = [e / b for e, b in zip(eng_fps, bare_fps)]
-    hmm_ratio = [h / b for h, b in zip(hmm_fps, bare_fps)]
-    eng, hmm = rounds[0][1], rounds[0][2]
-    (eng_floor, eng_floor_med), (hmm_floor, hmm_floor_med) = _floor(rounds, 1), _floor(rounds, 2)
+    eng = rounds[0][1]
+    eng_floor, eng_floor_med = _floor(rounds, 1)
     yield {"benchmark": "engine", "frames": eng.frames, "map_priors": eng.map_priors, "frames_per_s": med(eng_fps),
-           "growth": med([e.growth for _, e, _ in rounds]),
-           "growth_after_gps": med([e.growth_after_gps for _, e, _ in rounds]),
+           "growth": med([e.growth for _, e in rounds]),
+           "growth_after_gps": med([e.growth_after_gps for _, e in rounds]),
            "bare_chain_frames_per_s": med(bare_fps),
            "ratio_to_bare": med(eng_ratio), **eng_floor_med,
            "rounds": {"frames_per_s": eng_fps, "bare_chain_frames_per_s": bare_fps, "ratio_to_bare": eng_ratio,
                       **eng_floor}}
-    yield {"benchmark": "engine_hmm", "frames": hmm.frames, "map_priors": hmm.map_priors, "frames_per_s": med(hmm_fps),
-           "growth": med([h.growth for _, _, h in rounds]),
-           "growth_after_gps": med([h.growth_after_gps for _, _, h in rounds]), "ratio_to_bare": med(hmm_ratio),
-           "ratio_to_single_frame": med([h / e for h, e in zip(hmm_fps, eng_fps)]), **hmm_floor_med,
-           "rounds": {"frames_per_s": hmm_fps, "ratio_to_bare": hmm_ratio, **hmm_floor}}
     yield bench_relocalise(road)
     singles, batches, kds, settled = [], [], [], 0.0
     for _ in range(max(1, repeats)):

@@ -177,8 +177,8 @@ def maps_stress(
     seed: Annotated[int, typer.Option(help="Seed of offsets and heading errors.")] = 0,
     sequence: Annotated[bool, typer.Option("--sequence", help="Also drive through every junction (every entering road "
                                            "to every other road, errors correlated along the drive) and match the "
-                                           "drives as sequences with the road hypotheses (FusionConfig road_tracking = "
-                                           "hmm), beside the single-frame matcher on the same poses.")] = False,
+                                           "drives as sequences with road hypotheses (an HMM over the road graph, "
+                                           "mapfusion.hypotheses), beside the single-frame matcher on the same poses.")] = False,
 ) -> None:
     """Stress-test the road matcher around every junction; match rate overall and by junction kind."""
     from mapfusion.maps import resolve_map

@@ -342,23 +342,20 @@ def _correlated(rng: np.random.Generator, n: int, rho: float, sigma: float, boun
 
 
 def run_sequence_stress(road: RoadMap, cfg: StressConfig = StressConfig(), seq: SequenceConfig = SequenceConfig(),
-                        fusion=None) -> SequenceResult:
+                        ) -> SequenceResult:
     """Drive through every junction from every entering road to every other road, with offset and
     heading errors correlated along the drive; match each drive as a sequence with the road
     hypotheses (started on the entering road: the vehicle arrives localised) and pose by pose with
     the single-frame matcher, and score both by junction kind."""
-    from mapfusion.config import FusionConfig
     from mapfusion.hypotheses import RoadHypotheses, candidates
 
-    fusion = fusion or FusionConfig(search_radius_m=cfg.radius_m, angle_weight_m_per_deg=cfg.angle_weight_m_per_deg,
-                                    lane_width_m=cfg.lane_width_m)
     rng = np.random.default_rng(cfg.seed)
     kinds = classify_junctions(road, cfg)
     ends = _edge_ends(road)
     width = road.width_m(cfg.lane_width_m)
     rho = math.exp(-seq.sample_m / seq.correlation_m)
     tally: dict[str, list[int]] = {k.value: [0, 0, 0, 0] for k in JunctionKind}  # drives, poses, seq, single
-    hyp = RoadHypotheses(road, fusion)
+    hyp = RoadHypotheses(road)
     for v in sorted(kinds):
         inc = [e for e, _ in ends[v]]
         for e_in in inc:

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapfusion import RoadMap
-from mapfusion.config import FusionConfig, RoadTracking
+from mapfusion.config import FusionConfig
 from mapfusion.harness import bench
 from mapfusion.harness.bench import run_benchmarks
 from mapfusion.roadmap import can_drive
@@ -29,13 +29,13 @@ def test_bench_lines_carry_their_anchors_and_ratios(tmp_path, monkeypatch):
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     rows = {r["benchmark"]: r for r in run_benchmarks(duration_s=300.0, city_km=(2.0, 2.0), repeats=3)}
     assert list(tmp_path.iterdir()) == []  # its synthetic city's files are not left behind
-    assert set(rows) == {"roadmap_build", "engine", "engine_hmm", "matcher", "relocalise"}
+    assert set(rows) == {"roadmap_build", "engine", "matcher", "relocalise"}
     rel = rows["relocalise"]
     assert rel["particles"] > 0 and math.isclose(rel["realtime_factor"], rel["drive_s"] / rel["compute_s"])
-    eng, hmm = rows["engine"], rows["engine_hmm"]
+    eng = rows["engine"]
     assert eng["map_priors"] > 0  # the drive exercises the map
     # growth over the drive after its GPS (300 s: 170 s of it) as well as over the whole drive
-    assert math.isfinite(eng["growth_after_gps"]) and eng["growth_after_gps"] > 0 and hmm["growth_after_gps"] > 0
+    assert math.isfinite(eng["growth_after_gps"]) and eng["growth_after_gps"] > 0
     # each round's ratio is to the anchor measured beside it; the line gives their median
     r = eng["rounds"]
     assert len(r["ratio_to_bare"]) == 3
@@ -43,13 +43,9 @@ def test_bench_lines_carry_their_anchors_and_ratios(tmp_path, monkeypatch):
         assert math.isclose(ratio, fps / bare)
     assert math.isclose(eng["ratio_to_bare"], _median(r["ratio_to_bare"]))
     assert math.isclose(eng["frames_per_s"], _median(r["frames_per_s"]))
-    h = hmm["rounds"]
-    for fps, bare, ratio in zip(h["frames_per_s"], r["bare_chain_frames_per_s"], h["ratio_to_bare"]):
-        assert math.isclose(ratio, fps / bare)
-    assert math.isclose(hmm["ratio_to_bare"], _median(h["ratio_to_bare"]))
     # the floor: GTSAM's updates and the road fixes' particles are part of every engine frame's time, so no round's
     # ratio exceeds the bound they leave (a timing that missed them would leave an infinite or a lower bound)
-    for line in (eng, hmm):
+    for line in (eng,):
         rr = line["rounds"]
         assert all(u > 0 for u in rr["gtsam_update_us_per_frame"]) and all(p > 0 for p in rr["road_fixes_us_per_frame"])
         for ratio, bound in zip(rr["ratio_to_bare"], rr["ratio_to_bare_at_most"]):
@@ -65,8 +61,8 @@ def test_bench_lines_carry_their_anchors_and_ratios(tmp_path, monkeypatch):
 
 
 def test_the_engine_lines_measure_the_configuration_given(monkeypatch):
-    """``mapfusion bench --config``: both engine lines run the configuration given (the road-hypotheses line with
-    road_tracking = "hmm" added to it): without road fixes no frame spends time in their particles."""
+    """``mapfusion bench --config``: the engine line runs the configuration given: without road fixes no frame
+    spends time in their particles."""
     seen = []
     real = bench.bench_engine
 
@@ -76,11 +72,9 @@ def test_the_engine_lines_measure_the_configuration_given(monkeypatch):
 
     monkeypatch.setattr(bench, "bench_engine", spy)
     rows = run_benchmarks(duration_s=150.0, city_km=(1.0, 1.0), repeats=1, config=FusionConfig(road_fixes=False))
-    got = {r["benchmark"]: r for r in (next(rows), next(rows), next(rows))}
-    assert [c.road_fixes for c in seen] == [False, False]
-    assert [c.road_tracking for c in seen] == [FusionConfig().road_tracking, RoadTracking.hmm]
-    for line in ("engine", "engine_hmm"):
-        assert got[line]["road_fixes_us_per_frame"] == 0.0 and got[line]["gtsam_update_us_per_frame"] > 0
+    got = {r["benchmark"]: r for r in (next(rows), next(rows))}
+    assert [c.road_fixes for c in seen] == [False]
+    assert got["engine"]["road_fixes_us_per_frame"] == 0.0 and got["engine"]["gtsam_update_us_per_frame"] > 0
 
 
 @pytest.fixture(scope="module", params=["synthetic/grid.osm", "helsinki.osm.pbf"])
@@ -140,7 +134,7 @@ def test_on_a_map_of_two_way_roads_the_drive_turns_every_way_and_back_only_at_de
 def test_the_bench_measures_a_map_given_in_place_of_the_synthetic_city():
     """``mapfusion bench --map helsinki``: every line is measured on the bundled Helsinki map, and says so."""
     rows = {r["benchmark"]: r for r in run_benchmarks(duration_s=200.0, repeats=1, map_path="helsinki")}
-    assert set(rows) == {"roadmap_build", "engine", "engine_hmm", "matcher", "relocalise"}
+    assert set(rows) == {"roadmap_build", "engine", "matcher", "relocalise"}
     assert all(r["map"] == "helsinki" for r in rows.values())
     assert rows["roadmap_build"]["waypoints"] == len(RoadMap.from_osm(MAPS / "helsinki.osm.pbf"))
     assert rows["engine"]["frames"] == 2000 and rows["engine"]["ratio_to_bare"] > 0

@@ -167,3 +167,37 @@ def test_a_learned_odometry_sigma_over_the_open_factor_opens_the_gate(east_road,
     _, _, factor_ = _heading_prior(east_road, 0.0, 0.0, 0.05, yaw_sigma_deg=1.0, sigma_factor=factor,
                                    heading_prior_gate=1.0, heading_prior_open_factor=1.5)
     assert (factor_ is not None) == expected
+
+
+def _drive_off_the_road(tmp_path, cfg: FusionConfig):
+    """GPS along a lone road for 120 s, then the odometry turns 90° and leaves the network for 600 m."""
+    from mapfusion import MapFusion
+
+    road = RoadMap.from_osm(write_osm(tmp_path, [(straight_road(3000.0, 0.0, (-1500.0, 0.0)), {"highway": "primary"})]),
+                            cache=False)
+    (x0, y0) = road.xy_m[0]
+    eng = MapFusion(road, cfg, gps_rate_hz=1.0, odometry_rate_hz=10.0)
+    for k in range(2100):
+        t = 0.1 * k
+        if k % 10 == 0 and t <= 120.0:
+            lat, lon = road.projection.to_geo(x0 + 100.0 + 10.0 * t, y0)
+            eng.add_gps(t, float(lat), float(lon), None, 1.0)
+        rel = np.eye(4)
+        rel[0, 3] = 0.0 if k == 0 else 1.0
+        if k == 1500:  # a 90° turn where there is no road
+            rel[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
+        eng.add_odometry(t, rel)
+    eng.finish()
+    return eng
+
+
+def test_leaving_the_network_is_a_lost_event(tmp_path):
+    """With map_relocalisation the association watches for lost: 600 m at 10 m/s off a lone road is one lost event,
+    from about lost_after_m (100 m: 10 s) past the point where no road within lost_cost_m explains the estimate."""
+    eng = _drive_off_the_road(tmp_path, FusionConfig(map_relocalisation=True))
+    assert eng.initialised
+    assert eng.counters.lost_events == 1
+    assert 10.0 < eng.lost_s < 60.0
+    (tmp_path / "default").mkdir()
+    default = _drive_off_the_road(tmp_path / "default", FusionConfig())
+    assert default.counters.lost_events == 0 and default.lost_s == 0.0  # lost is watched only where it is acted on

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from pathlib import Path
 
@@ -59,12 +60,12 @@ def test_a_mode_given_by_name_is_that_mode_and_a_wrong_name_is_refused():
     import dataclasses
     import enum
 
-    from mapfusion.config import PriorTarget, RoadTracking, TrafficSide
+    from mapfusion.config import PriorTarget, TrafficSide
     from mapfusion.errors import ConfigError
 
     # the engine compares modes by identity: a name left as a string would silently take another branch
-    c = FusionConfig(prior_target="band", road_tracking="hmm", traffic_side="left")
-    assert c.prior_target is PriorTarget.band and c.road_tracking is RoadTracking.hmm
+    c = FusionConfig(prior_target="band", traffic_side="left")
+    assert c.prior_target is PriorTarget.band and c.traffic_side is TrafficSide.left
     assert dataclasses.replace(c, traffic_side="none").traffic_side is TrafficSide.none
     for f in dataclasses.fields(FusionConfig):
         v = getattr(FusionConfig(), f.name)
@@ -73,3 +74,21 @@ def test_a_mode_given_by_name_is_that_mode_and_a_wrong_name_is_refused():
                 assert getattr(FusionConfig(**{f.name: member.value}), f.name) is member
     with pytest.raises(ConfigError, match="prior_target = 'sideways' is not one of centre, edge, band"):
         FusionConfig(prior_target="sideways")
+
+
+@pytest.mark.parametrize("key, says", [("hmm_lost_after_m", "is renamed lost_after_m"),
+                                       ("road_tracking", "was removed"), ("hmm_beam", "was removed")])
+def test_a_retired_key_is_refused_with_one_line_saying_what_became_of_it(tmp_path, key, says):
+    from mapfusion.config import from_mapping
+    from mapfusion.errors import ConfigError
+
+    assert key not in {f.name for f in dataclasses.fields(FusionConfig)}
+    with pytest.raises(ConfigError) as err:
+        from_mapping(FusionConfig, {key: 1, "lane_width_m": 3.0}, "old.toml", "mapfusion.")
+    line = str(err.value)
+    assert "\n" not in line and line.startswith(f"old.toml: mapfusion.{key} {says}")
+
+
+def test_no_retired_key_is_a_field():
+    """A key cannot be both retired and live: the loader would refuse a field the engine reads."""
+    assert not set(FusionConfig.RETIRED_KEYS) & {f.name for f in dataclasses.fields(FusionConfig)}

@@ -12,19 +12,19 @@ from hypothesis import strategies as st
 
 from mapfusion import RoadMap
 from mapfusion.roadmap import can_drive
-from mapfusion.config import FusionConfig, RoadTracking
-from mapfusion.hypotheses import RoadHypotheses, candidates
+from mapfusion.hypotheses import HmmParams, RoadHypotheses, candidates
 from mapfusion.geometry import wrap_angle
 from mapfusion.matcher import match
 from tests.helpers import MAPS, circle_road, straight_road, write_osm
 
 GRID = RoadMap.from_osm(MAPS / "synthetic" / "grid.osm")
-CFG = FusionConfig(road_tracking=RoadTracking.hmm)
+CFG = HmmParams()
+RADIUS_M, W_M_PER_DEG = 20.0, 1.0  # the matcher's search radius and angle weight (the engine's defaults)
 
 
 def _step(h: RoadHypotheses, road: RoadMap, x: float, y: float, yaw: float, moved: float):
-    near = road.query_radius(x, y, CFG.search_radius_m)
-    return h.step(candidates(road, near, x, y, yaw, CFG.angle_weight_m_per_deg), moved)
+    near = road.query_radius(x, y, RADIUS_M)
+    return h.step(candidates(road, near, x, y, yaw, W_M_PER_DEG), moved)
 
 
 @settings(max_examples=30, deadline=None)
@@ -39,7 +39,7 @@ def test_the_posterior_sums_to_one(seed, n, noise):
         post = h.posterior()
         if st_.best is not None:
             assert math.isclose(sum(post.values()), 1.0, rel_tol=1e-9)
-            assert 0.0 < st_.posterior <= 1.0 + 1e-12 and len(post) <= CFG.hmm_beam
+            assert 0.0 < st_.posterior <= 1.0 + 1e-12 and len(post) <= CFG.beam
         x, y = x + 5.0 * math.cos(yaw), y + 5.0 * math.sin(yaw)
 
 
@@ -63,16 +63,16 @@ def test_on_a_lone_road_it_is_the_single_frame_match(lone_road, along, offset, y
         x = x0 + s * math.cos(road_yaw) - offset * math.sin(road_yaw)
         y = y0 + s * math.sin(road_yaw) + offset * math.cos(road_yaw)
         st_ = _step(h, road, x, y, heading + yaw_err, 5.0)
-    m = match(road, x, y, heading + yaw_err, CFG.search_radius_m, CFG.angle_weight_m_per_deg)
+    m = match(road, x, y, heading + yaw_err, RADIUS_M, W_M_PER_DEG)
     assert st_.best is not None and m is not None
     assert st_.best.edge == m.edge and st_.best.index == m.index
     assert (st_.best.direction < 0) == m.reversed
     if steps == 1:  # one road, two directions: the posterior is the emissions' alone
-        cands = candidates(road, road.query_radius(x, y, CFG.search_radius_m), x, y, heading + yaw_err,
-                           CFG.angle_weight_m_per_deg)
+        cands = candidates(road, road.query_radius(x, y, RADIUS_M), x, y, heading + yaw_err,
+                           W_M_PER_DEG)
         costs = sorted(c.cost for c in cands)
         assert len(costs) == 2
-        assert st_.posterior == pytest.approx(1.0 / (1.0 + math.exp(-(costs[1] - costs[0]) / CFG.hmm_emission_scale_m)))
+        assert st_.posterior == pytest.approx(1.0 / (1.0 + math.exp(-(costs[1] - costs[0]) / CFG.emission_scale_m)))
     else:  # after a second step the other direction has moved against the odometry: it is ruled out
         assert st_.posterior == pytest.approx(1.0)
 
@@ -126,39 +126,6 @@ def test_a_drive_through_a_junction_ends_on_the_true_exit_road(pick, seed, offse
     assert st_.posterior > 0.9
 
 
-def _drive_off_the_road(tmp_path, cfg: FusionConfig):
-    """GPS along a lone road for 120 s, then the odometry turns 90° and leaves the network for 600 m."""
-    from mapfusion import MapFusion
-
-    road = RoadMap.from_osm(write_osm(tmp_path, [(straight_road(3000.0, 0.0, (-1500.0, 0.0)), {"highway": "primary"})]),
-                            cache=False)
-    (x0, y0) = road.xy_m[0]
-    eng = MapFusion(road, cfg, gps_rate_hz=1.0, odometry_rate_hz=10.0)
-    for k in range(2100):
-        t = 0.1 * k
-        if k % 10 == 0 and t <= 120.0:
-            lat, lon = road.projection.to_geo(x0 + 100.0 + 10.0 * t, y0)
-            eng.add_gps(t, float(lat), float(lon), None, 1.0)
-        rel = np.eye(4)
-        rel[0, 3] = 0.0 if k == 0 else 1.0
-        if k == 1500:  # a 90° turn where there is no road
-            rel[:2, :2] = [[0.0, -1.0], [1.0, 0.0]]
-        eng.add_odometry(t, rel)
-    eng.finish()
-    return eng
-
-
-def test_leaving_the_network_is_a_lost_event(tmp_path):
-    eng = _drive_off_the_road(tmp_path, CFG)
-    assert eng.initialised
-    assert eng.counters.lost_events == 1
-    # lost from about hmm_lost_after_m past the point where no road explains the estimate
-    assert 10.0 < eng.lost_s < 60.0
-    (tmp_path / "single").mkdir()
-    single = _drive_off_the_road(tmp_path / "single", FusionConfig())
-    assert single.counters.lost_events == 0 and single.lost_s == 0.0  # the single-frame default never says so
-
-
 @pytest.fixture(scope="module")
 def ring_road(tmp_path_factory):
     p = write_osm(tmp_path_factory.mktemp("ring"), [(circle_road(60.0, n=90), {"highway": "primary"})])
@@ -172,9 +139,9 @@ def test_a_candidate_stands_at_the_foot_of_the_pose(ring_road, angle, offset, ya
     """On a curve: each candidate is its edge's way-point nearest the pose (whatever the heading, which
     changes only the cost), its cost D = E + w·A there, and its position along the edge the pose
     projected onto the road's direction there."""
-    road, w = ring_road, CFG.angle_weight_m_per_deg
+    road, w = ring_road, W_M_PER_DEG
     x, y = (60.0 + offset) * math.cos(angle), (60.0 + offset) * math.sin(angle)
-    near = road.query_radius(x, y, CFG.search_radius_m)
+    near = road.query_radius(x, y, RADIUS_M)
     got = candidates(road, near, x, y, yaw, w)
     assert got and {c.direction for c in got} == {1, -1}
     for c in got:

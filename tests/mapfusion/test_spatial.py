@@ -13,7 +13,7 @@ from hypothesis.extra import numpy as hnp
 from hypothesis import strategies as st
 
 from mapfusion.geometry import as_complex
-from mapfusion.matcher import Match, _clip, lateral_bound_ok, map_pose, match, match_candidates, match_range
+from mapfusion.matcher import Match, _clip, lateral_bound_ok, map_pose, match, match_candidates
 from mapfusion.spatial import CellIndex
 
 angles = st.floats(-math.pi, math.pi)
@@ -94,23 +94,6 @@ def test_match_through_the_cells_is_the_brute_force_match(helsinki, i, dx, dy, y
     assert (got is None) == (want is None)
     if got is not None:
         assert got.cost == want.cost and got.way_id == want.way_id and got.lateral_m == want.lateral_m
-
-
-@given(i=st.integers(0, 10**6), dx=st.floats(-25, 25), dy=st.floats(-25, 25), yaw=angles)
-def test_match_range_is_the_match_among_the_edges_points_in_range(helsinki, i, dx, dy, yaw):
-    e = i % len(helsinki.edge_u)
-    a, b = int(helsinki.edge_start[e]), int(helsinki.edge_end[e])
-    mid = (a + b) // 2
-    x, y = float(helsinki.xy_m[mid, 0] + dx), float(helsinki.xy_m[mid, 1] + dy)
-    got = match_range(helsinki, a, b, x, y, yaw, 20.0)
-    pts = np.arange(a, b)
-    inside = pts[np.hypot(helsinki.xy_m[a:b, 0] - x, helsinki.xy_m[a:b, 1] - y) <= 20.0]
-    if inside.size == 0:
-        assert got is None
-        return
-    k, _, _, _, d = match_candidates(x, y, yaw, helsinki.xy_m[inside], helsinki.legal_cos[inside],
-                                     helsinki.legal_sin[inside], 1.0, helsinki.two_way_sign[inside])
-    assert got is not None and got.cost == d and got.edge == e
 
 
 @given(i=st.integers(0, 10**6), dx=st.floats(-12, 12), dy=st.floats(-12, 12), yaw=angles,
