@@ -64,7 +64,7 @@ class MapAssociation:
         self._robust = factors.robust_kernel(cfg)
         self._unexplained_m = 0.0
         self.lost = False  # no road explains the estimate (watched with map_relocalisation: lost_events)
-        self.became_lost = False  # set when the estimate becomes lost; the engine clears it
+        self.became_lost = False  # set when the estimate becomes lost; cleared by take_became_lost
         self.explained_xy: tuple[float, float] | None = None  # the estimate where a road last explained it
         self._since_prior_m = math.inf  # odometry distance since the last map prior
         self._since_heading_m = math.inf  # odometry distance since the last heading prior
@@ -76,6 +76,11 @@ class MapAssociation:
         """Forget the last road (after a re-localisation)."""
         self.edge = -1
         self._unexplained_m, self.lost = 0.0, False
+
+    def take_became_lost(self) -> bool:
+        """Whether the estimate became lost since the last call (the flag is cleared)."""
+        became, self.became_lost = self.became_lost, False
+        return became
 
     def _watch_lost(self, explained: bool, moved_m: float, pred: gtsam.Pose3) -> None:
         """Lost after ``lost_after_m`` of driving unexplained (no road within ``lost_cost_m`` of D); found again at

@@ -2,10 +2,12 @@
 odometry, GPS and map priors.
 
 :class:`MapFusion` takes measurements and returns estimates; it owns no files and prints
-nothing. It coordinates the parts, each in its own module: the frames (:mod:`.track`), the GPS
-initialisation and scale (:mod:`.initialisation`), the road association and map prior
-(:mod:`.association`), the GPS gate (:mod:`.gps_gate`), every factor and noise model
-(:mod:`.factors`) and the smoother with its re-anchoring (:mod:`.smoother`).
+nothing. It coordinates parts, each holding its own state: the frames (:mod:`.track`), the GPS
+initialisation and scale (:mod:`.initialisation`), the estimate's one owner (:mod:`.estimate`: the
+alignment, the smoother, its restarts), the road association and map prior (:mod:`.association`), the
+GPS gate (:mod:`.gps_gate`), the wheel and gyro (:mod:`.motion`), the outage carry and GPS's re-anchoring
+(:mod:`.reanchoring`), the map's re-anchorings (:mod:`.registering`), the search of the road network
+(:mod:`.searching`) and the road fixes (:mod:`.tracking`). The parts propose; the estimate applies.
 
 One Pose3 per odometry frame (key ``x<k>``); odometry enters as BetweenFactorPose3, GPS as
 GPSFactor, the map as a prior on a frame whose predicted pose lies farther from its road than
@@ -16,27 +18,29 @@ are solved as one batch and the smoother starts from the last of them.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 
 import gtsam
 import numpy as np
 
-from . import factors, odometry_trust
+from . import factors
 from .association import MapAssociation
-from .config import FusionConfig
+from .config import FusionConfig, StateModel
 from .counters import Counters
 from .errors import EngineError
+from .estimate import Estimate
 from .gps_gate import GpsGate, GpsQueue, Verdict
+from .initialisation import Initialiser
 from .motion import MotionFusion
-from .initialisation import Initialiser, solve_initial_batch
+from .reanchoring import GpsReanchoring, OutageCarry
+from .registering import FixRegistration, MapAnchors
+from .relocalise import Located
 from .roadmap import RoadMap
-from .smoother import Smoother
+from .searching import MapSearch
 from .stream import OnFinal, Release
-from .searching import MapSearching
 from .track import Alignment, JumpGuard, planar_of, track_for
-from .tracking import RoadFixes, RoadFixing
+from .tracking import RoadFixes
 
 log = logging.getLogger(__name__)
 
@@ -66,40 +70,7 @@ def _finite_pose(p: gtsam.Pose3) -> bool:
     return bool(np.all(np.isfinite(p.matrix())))
 
 
-class _Readings:
-    """The engine's read-only figures (scale, σ, calibrations): kept apart from the engine's logic."""
-
-    alignment: Alignment | None
-    initialiser: Initialiser
-    _motion: MotionFusion
-    _pos_sigma: float
-
-    @property
-    def initialised(self) -> bool:
-        return self.alignment is not None
-
-    @property
-    def scale(self) -> float | None:
-        """The odometry's scale (map metres per odometry unit), None before initialisation."""
-        return None if self.alignment is None else self.alignment.scale
-
-    scale_sigma = property(lambda self: None if self.alignment is None else self.alignment.scale_sigma)
-    wheel_scale = property(lambda self: self._motion.wg.scale, doc="True metres per wheel metre (1 until calibrated).")
-    gyro_bias_radps = property(lambda self: self._motion.wg.bias_radps, doc="The gyro's estimated yaw-rate bias.")
-    position_sigma_m = property(lambda self: self._pos_sigma, doc="The latest marginal's largest positional σ (m).")
-    odometry_sigma_factor = property(lambda self: self._motion.sigma_factor,
-                                     doc="The factor on the configured odometry σ (odometry_sigma_learned; else 1).")
-
-    scale_windows = property(lambda self: None if self.initialiser.windows is None else self.initialiser.windows.scale,
-                             doc="The paper's median-of-windows scale at initialisation.")
-
-    @property
-    def scale_samples(self) -> int:
-        """Scale samples the windows gave so far."""
-        return len(self.initialiser.scale_estimator.samples)
-
-
-class MapFusion(_Readings, MapSearching, RoadFixing):
+class MapFusion:
     """The engine: feed it odometry and GPS in time order, read estimates back.
 
     ``add_odometry(t, relative_pose)``: the motion since the previous frame, body frame (x
@@ -112,34 +83,57 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
     def __init__(self, road: RoadMap, config: FusionConfig | None = None, *, gps_rate_hz: float = 1.0,
                  odometry_rate_hz: float = 10.0, on_final: OnFinal | None = None) -> None:
         self.road = road
-        self.cfg = config or FusionConfig()
-        self.counters = Counters()
-        self.track = track_for(self.cfg, odometry_rate_hz)
-        self.initialiser = Initialiser(self.cfg, gps_rate_hz, odometry_rate_hz)
-        self.alignment: Alignment | None = None
-        self.initialised_at: float | None = None
+        cfg = self.cfg = config or FusionConfig()
+        counters = self.counters = Counters()
+        track = self.track = track_for(cfg, odometry_rate_hz)
+        init = self.initialiser = Initialiser(cfg, gps_rate_hz, odometry_rate_hz)
         self.map_prior_frames: list[int] = []
         self.lost_s = 0.0  # time the association held the estimate lost (map_relocalisation)
         self.matched_way: list[int] = []  # OSM way the matcher chose at each frame (-1: none)
-        self._association = MapAssociation(road, self.cfg, self.counters)
-        self._gate = GpsGate(self.cfg)
-        self._jumps = JumpGuard.for_config(self.cfg)
-        self._motion = MotionFusion(self.cfg, self.counters)  # wheel speed and gyro, when fed (issue 18)
-        self._release = Release(self.cfg, on_final)  # streaming: final frames handed out, then forgotten
-        self._smoother: Smoother | None = None
-        self._gps = GpsQueue(self.cfg)
-        self._since_update = 0
-        self._last_cov_check_t = -math.inf
-        self._pos_sigma = self._lat_sigma = 0.0  # the estimate's positional σ: largest, across the vehicle
-        self._yaw_sigma = math.inf  # and its yaw σ (rad; unknown until the first check)
-        self._init_reanchoring()
-        self._road_fixes = RoadFixes(road, self.cfg, self.counters)  # (inert unless road_fixes and use_map)
+        assoc = self._association = MapAssociation(road, cfg, counters)
+        gate = self._gate = GpsGate(cfg)
+        jumps = self._jumps = JumpGuard.for_config(cfg)
+        self._motion = MotionFusion(cfg, counters)  # wheel speed and gyro, when fed (issue 18)
+        self._release = Release(cfg, on_final)  # streaming: final frames handed out, then forgotten
+        self._gps = GpsQueue(cfg)
+        self._road_fixes = RoadFixes(road, cfg, counters)  # (inert unless road_fixes and use_map)
+        est = self._estimate = Estimate(cfg, track, counters, self._motion, init,
+                                        on_restart=(self._road_fixes.reanchored, assoc.reset))
+        self._carry = OutageCarry(road, cfg, track, est, gate, jumps)
+        self._gps_reanchoring = GpsReanchoring(cfg, track, est, gate, init, counters)
+        anchors = self._anchors = MapAnchors(road, cfg, track, est, counters)
+        self._map_search = MapSearch(road, cfg, track, est, init, assoc, anchors,
+                                     FixRegistration(road, cfg, track, est, init, assoc, anchors), self._carry)
 
-    # ------------------------------------------------------------------ public API (and the readings of _Readings)
+    # ------------------------------------------------------------------ readings
+    alignment = property(lambda self: self._estimate.alignment, doc="Heading, offset and scale; None before "
+                         "initialisation.")
+    initialised_at = property(lambda self: self._estimate.initialised_at, doc="Time of initialisation, or None.")
+    initialised = property(lambda self: self._estimate.alignment is not None)
+    smoother = property(lambda self: self._estimate.smoother, doc="The smoother (None before initialisation).")
+    relocalised_at = property(lambda self: self._anchors.relocalised_at,
+                              doc="(time, distance searched) of each map re-localisation.")
+    scale = property(lambda self: None if self.alignment is None else self.alignment.scale,
+                     doc="The odometry's scale (map metres per odometry unit), None before initialisation.")
+    scale_sigma = property(lambda self: None if self.alignment is None else self.alignment.scale_sigma)
+    wheel_scale = property(lambda self: self._motion.wg.scale, doc="True metres per wheel metre (1 until calibrated).")
+    gyro_bias_radps = property(lambda self: self._motion.wg.bias_radps, doc="The gyro's estimated yaw-rate bias.")
+    position_sigma_m = property(lambda self: self._estimate.pos_sigma_m,
+                                doc="The latest marginal's largest positional σ (m).")
+    odometry_sigma_factor = property(lambda self: self._motion.sigma_factor,
+                                     doc="The factor on the configured odometry σ (odometry_sigma_learned; else 1).")
+    scale_windows = property(lambda self: None if self.initialiser.windows is None else self.initialiser.windows.scale,
+                             doc="The paper's median-of-windows scale at initialisation.")
+    scale_samples = property(lambda self: len(self.initialiser.scale_estimator.samples),
+                             doc="Scale samples the windows gave so far.")
+    searching_from_region = property(lambda self: self.alignment is None and self._map_search.running,
+                                     doc="A cold start's search is running (no estimate yet).")
+
     def map_prior_times(self) -> list[float]:
         """Times of the frames that received a map prior."""
         return [self.track.t[k] for k in self.map_prior_frames if k >= self.track.first]
 
+    # ------------------------------------------------------------------ input
     def add_odometry(self, t: float, relative_pose) -> None:
         """One odometry frame: the motion since the previous frame (see the class docstring)."""
         (rel, finite), t = _as_pose3(relative_pose), float(t)
@@ -153,7 +147,7 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
             return
         step = motion.odometry_step(track.t[-1], t, rel, self.scale) if track.t and motion.active else None
         self._append(t, self._jumps.bridge(t, rel, self.scale, self.counters) if step is None else step)
-        motion.last_odometry_t = t
+        motion.odometry_seen(t)
 
     def add_wheel_speed(self, t: float, speed_mps: float) -> None:
         """One wheel-speed sample (m/s, forward); with a yaw rate it is a second motion source (issue 18)."""
@@ -168,26 +162,6 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
     def add_imu(self, t: float, gyro_radps, accel_mps2=None) -> None:
         """One IMU sample (body frame: x forward, y left, z up): the planar engine takes gyro z."""
         self.add_yaw_rate(t, float(np.asarray(gyro_radps, dtype=float)[2]))
-
-    def _wheel_frames(self) -> None:  # frames wheel and gyro make alone while the odometry is silent
-        track, motion = self.track, self._motion
-        while (t := motion.frame_due(track.t[-1] if track.t else None, track.nominal_period_s)) is not None:
-            self._append(t, motion.wheel_step(track.t[-1], t, self.scale) if track.t else gtsam.Pose3())
-
-    def _append(self, t: float, rel: gtsam.Pose3) -> None:
-        position = self.track.append(t, rel)
-        self.counters.frames += 1
-        self.matched_way.append(-1)
-        if not self.initialised:
-            self.initialiser.scale_estimator.add_odometry(t, position)  # read only until initialised
-            self._try_initialise()
-            if not (self.initialised or self.initialiser.fixes) and (loc := self._search.feed(*planar_of(
-                    self.track.raw[-1]))):
-                self._initialise_at(loc)
-        else:
-            self._add_frame(len(self.track) - 1)
-        self._flush_gps()
-        self._release.step(self)
 
     def add_gps(self, t: float, lat: float, lon: float, alt: float | None = None, sigma_m: float | None = None) -> None:
         """One GPS fix (WGS84 degrees; ``sigma_m`` per axis, or the configured gps_sigma_m)."""
@@ -206,13 +180,11 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
             self._try_initialise()
             return
         if self.cfg.refine_scale:
-            fit = self.initialiser.refit_with_fix(self.track, t, x, y, sigma)
-            if fit is not None:
-                self.alignment = dataclasses.replace(self._aligned, scale=fit.scale, scale_sigma=fit.scale_sigma)
-            self.alignment = self._motion.rescale(self._aligned)  # a calibrated wheel knows the scale better
+            self._estimate.refit(t, x, y, sigma)
         self._gps.waiting.append((t, x, y, None if alt is None else float(alt), sigma))
         self._flush_gps()
 
+    # ------------------------------------------------------------------ output
     def estimate(self) -> gtsam.Pose3 | None:
         """The current causal estimate of the latest frame, or None before initialisation."""
         return self.track.online[-1] if self.initialised and len(self.track.online) else None
@@ -223,10 +195,11 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
 
     def trajectory(self) -> dict[float, gtsam.Pose3]:
         """Smoothed poses of every frame so far, by time (flushes pending factors first)."""
-        if self._smoother is None:
+        sm = self.smoother
+        if sm is None:
             return {}
-        self._update()
-        out = self._sm.poses()
+        self._estimate.update()
+        out = sm.poses()
         for k, p in self.track.online.held():  # frames the smoother never held (a failed update)
             if k not in out and p is not None:
                 out[k] = p
@@ -236,21 +209,65 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
         """Add what is pending (call once at the end); later fixes count as rejected for their time."""
         if self.initialised:
             self._gps.drop(self.counters)
-            self._update()
+            self._estimate.update()
         self._release.finish(self)
 
-    @property
-    def _sm(self) -> Smoother:
-        """The smoother (it exists from initialisation on)."""
-        assert self._smoother is not None
-        return self._smoother
+    # ------------------------------------------------------------------ re-anchoring from outside
+    def start_in_region(self, lat: float, lon: float, radius_m: float) -> None:
+        """Cold start without GPS (issue 17): the vehicle starts somewhere on the roads within ``radius_m`` of
+        (lat, lon); the odometry's shape finds it, and the estimate begins once found. The odometry's scale is
+        taken as 1 (a metric VO or VIO) unless ``reloc_scale_min`` < ``reloc_scale_max``: then the search finds
+        the scale in that range with the position (``fuse --scale-unknown``)."""
+        if self.alignment is not None or self.track.t:
+            raise EngineError("start_in_region must be called before the first odometry frame")
+        if not (math.isfinite(lat) and math.isfinite(lon) and math.isfinite(radius_m) and radius_m > 0):
+            raise EngineError(f"start region needs a finite latitude, longitude and radius > 0, got {lat}, {lon}, "
+                              f"{radius_m}")
+        x, y = self.road.projection.to_enu(lat, lon)
+        self._map_search.start_in_region(float(x), float(y), float(radius_m))
 
-    @property
-    def _aligned(self) -> Alignment:
-        assert self.alignment is not None
-        return self.alignment
+    def reanchor_at(self, x_m: float, y_m: float, yaw_rad: float, sigma_m: float = 0.5,
+                    yaw_sigma_rad: float = 0.01) -> None:
+        """Re-anchor the estimate on a pose known from elsewhere (the map's ENU frame, m; yaw from east, rad): the
+        smoother restarts at the last frame with that pose as its prior (σ ``sigma_m`` a horizontal axis,
+        ``yaw_sigma_rad``), as the engine's own re-localisations do, and any running search ends. For a pose from
+        outside (an operator, another localiser), and to measure what a perfect re-localisation would give
+        (``mapfusion.harness.bounds``)."""
+        if self.alignment is None or self.smoother is None or not self.track.t:
+            raise EngineError("reanchor_at needs an estimate to re-anchor: the engine is not initialised yet")
+        values = (x_m, y_m, yaw_rad, sigma_m, yaw_sigma_rad)
+        if not all(math.isfinite(v) for v in values) or sigma_m <= 0 or yaw_sigma_rad <= 0:
+            raise EngineError(f"reanchor_at needs finite x, y, yaw and σs > 0, got {values}")
+        k = len(self.track) - 1
+        was = self.track.online[k]
+        z = was.z() if was is not None else 0.0
+        pose = gtsam.Pose3(gtsam.Rot3.Yaw(yaw_rad), gtsam.Point3(x_m, y_m, z))
+        self._map_search.stop()
+        noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, yaw_sigma_rad, sigma_m))
+        self._estimate.restart_from(k, pose, noise, sigma_m)
+        self._estimate.update()
 
-    # ------------------------------------------------------------------ initialisation
+    # ------------------------------------------------------------------ frames
+    def _wheel_frames(self) -> None:  # frames wheel and gyro make alone while the odometry is silent
+        track, motion = self.track, self._motion
+        while (t := motion.frame_due(track.t[-1] if track.t else None, track.nominal_period_s)) is not None:
+            self._append(t, motion.wheel_step(track.t[-1], t, self.scale) if track.t else gtsam.Pose3())
+
+    def _append(self, t: float, rel: gtsam.Pose3) -> None:
+        position = self.track.append(t, rel)
+        self.counters.frames += 1
+        self.matched_way.append(-1)
+        if not self.initialised:
+            self.initialiser.scale_estimator.add_odometry(t, position)  # read only until initialised
+            self._try_initialise()
+            if not (self.initialised or self.initialiser.fixes) and (loc := self._map_search.feed_cold(
+                    self.track.raw[-1])):
+                self._initialise_at(loc)
+        else:
+            self._add_frame(len(self.track) - 1)
+        self._flush_gps()
+        self._release.step(self)
+
     def _try_initialise(self) -> None:
         self._motion.restate(self.track, self.initialiser.scale_estimator)  # frames made before the wheel calibrated
         a = self.initialiser.try_align(self.track)
@@ -258,119 +275,61 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
             self._begin(self._motion.rescale(a))
 
     def _begin(self, a: Alignment, anchor: int = 0) -> None:
-        self.alignment, self.initialised_at = a, self.track.t[-1]
-        self._smoother = Smoother(self.cfg, self.track, self.counters, self._between,
-                                  lambda: self._to_map(self.track.raw[0]))
-        self._start_graph(anchor)
-        self._note_outage_in_batch()
+        self._estimate.begin(a, anchor)
+        self._carry.note_outage_in_batch()
 
-    def _learn_odometry_sigma(self) -> None:
-        """``odometry_sigma_learned``: the window's fixes set the factor on the odometry's σ (odometry_trust.py)."""
-        if self.cfg.odometry_sigma_learned and self.initialiser.fixes:
-            trust = odometry_trust.from_window(self.cfg, self.track, self._aligned, self.initialiser.fixes)
-            if trust is not None:
-                self._motion.sigma_factor = trust.factor
-                log.info("odometry σ × %.3f: the window's drift %.2f-%.2f m against %.2f m at the configured σ "
-                         "(%d fixes)", trust.factor, trust.drift_low_m, trust.drift_m, trust.model_m, trust.fixes)
-
-    def _to_map(self, raw: gtsam.Pose3) -> gtsam.Pose3:
-        return self.track.to_map(raw, self._aligned)
-
-    def _start_graph(self, anchor: int = 0) -> None:
-        """All buffered frames, solved as one batch; the smoother then starts from the last
-        buffered frame, with the batch's marginal covariance as its prior. (So the estimates inside
-        the initialisation window use its later fixes too.)"""
-        if self.cfg.refine_scale:
-            fit = self.initialiser.fit(self.track)
-            if fit is not None:
-                log.info("scale refined by the initialisation fit: %.4f → %.4f (± %.4f)", self.scale, fit.scale,
-                         fit.scale_sigma)
-                self.alignment = self._motion.rescale(fit)
-        self._learn_odometry_sigma()
-        batch = solve_initial_batch(self.cfg, self.track, self._aligned, self.initialiser.fixes,
-                                    lambda k: self._between(k, before_init=True), self.counters, anchor)
-        sm, last = self._sm, len(self.track) - 1
-        for k, pose in enumerate(batch.poses):
-            self.track.online[k] = pose
-            if k < last:
-                sm.smoothed[k] = pose
-        sm.smoothed_upto = last - 1
-        sm.add(factors.pose_prior(last, batch.poses[last], batch.last_noise))
-        sm.insert(last, batch.poses[last])
-        self._update()
-
-    # ------------------------------------------------------------------ frames
-    def _step(self, k: int) -> gtsam.Pose3:
-        return self._road_steps[k] if k in self._road_steps else self.track.step(k, self._aligned.scale)
-
-    def _between(self, k: int, before_init: bool = False, step: gtsam.Pose3 | None = None) -> gtsam.BetweenFactorPose3:
-        """The odometry factor into frame k."""
-        step = self._step(k) if step is None else step
-        noise = factors.odometry_noise(self.cfg, step, self.track.gap_frames(k), self.track.nominal_period_s,
-                                       before_init=before_init, scale_sigma=self._aligned.relative_sigma,
-                                       sigma_factor=self._motion.sigma_factor)
-        return factors.between(k, step, noise)
+    def _initialise_at(self, loc: Located) -> None:
+        """A cold start's search has found the vehicle: the odometry's frame aligned so that its last pose
+        is the found one (at the search's scale), the frames so far solved as at a GPS initialisation."""
+        if self.cfg.state is StateModel.planar and self.track.level_rot is None:
+            self.track.level_frame()
+        raw = self.track.raw[-1]
+        rot = loc.yaw_rad - raw.rotation().yaw()
+        c, s, (px, py, _) = math.cos(rot), math.sin(rot), raw.translation()
+        scale, c, s = loc.scale, c * loc.scale, s * loc.scale
+        sigma = max(self.cfg.reloc_scale_sigma, loc.scale_spread) * scale
+        self._motion.cold_start()  # (no window measured this odometry's drift)
+        self._begin(Alignment(scale, sigma, rot, np.array([loc.x_m - (c * px - s * py), loc.y_m - (s * px + c * py)])),
+                    anchor=len(self.track) - 1)
+        self._anchors.found_at_start(loc.driven_m)
 
     def _add_frame(self, k: int) -> None:
-        track, sm = self.track, self._sm
+        track, est = self.track, self._estimate
         prev = track.online[k - 1]
         if prev is None:
-            prev = self._to_map(track.raw[k - 1])
-        step = self._along_road(k, prev)
-        sm.add(self._between(k, step=step))
+            prev = est.to_map(track.raw[k - 1])
+        step = self._carry.step_into(k, prev)
+        est.add(est.between(k, step=step))
         pred = prev.compose(step)
-        self._note_outage(k, step)
-        sm.insert(k, pred)
+        self._carry.note_outage(k, step)
+        est.sm.insert(k, pred)
         prior_added = self._map_prior(k, pred, step) if self.cfg.use_map else False
-        prior_added = self._road_fix(k, pred) or prior_added
-        track.online[k] = pred
-        self._since_update += 1
-        self._maybe_odometry_prior(k, pred)
-        # a map prior updates at once: the causal estimate of frame k includes its own prior
-        if prior_added or self._since_update >= self.cfg.update_every:
-            self._update()
-            if sm.last_updated_key == k:
-                track.online[k] = sm.last_updated_pose
+        fix = self._road_fixes.fix(k, track.t[k], planar_of(track.raw[k]), pred, est, self._map_search.running,
+                                   self._association.kept_to_roads)
+        if fix is not None:
+            est.add(fix)
+        est.frame(k, pred, fix is not None or prior_added, self._association)
         if self.cfg.map_relocalisation:
-            self._search_when_lost(k, pred)
-        if self._gap_pending is not None:
-            self._recarry_gap(k)
+            self._map_search.when_lost(k, pred)
+        self._carry.recarry_gap(k)
 
     def _map_prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3) -> bool:
         """Add the map prior on frame k if its predicted pose is off its road, else the heading prior if one is due
         (``heading_prior_sigma_deg``); True if either was added."""
-        dt = self.track.t[k] - self.track.t[k - 1]
-        m, prior = self._association.prior(k, pred, step, dt, self._pos_sigma, self._lat_sigma)
+        dt, est = self.track.t[k] - self.track.t[k - 1], self._estimate
+        m, prior = self._association.prior(k, pred, step, dt, est.pos_sigma_m, est.lat_sigma_m)
         if self._association.lost:
             self.lost_s += dt
         self.matched_way[k] = m.way_id if m is not None else -1
         if prior is None:  # (on its road: perhaps a prior on the heading alone)
-            prior = self._association.heading_prior(k, pred, m, math.hypot(step.x(), step.y()), self._yaw_sigma,
+            prior = self._association.heading_prior(k, pred, m, math.hypot(step.x(), step.y()), est.yaw_sigma_rad,
                                                     self._motion.sigma_factor)
             if prior is None:
                 return False
         else:
             self.map_prior_frames.append(k)
-        self._sm.add(prior)
+        est.add(prior)
         return True
-
-    def _maybe_odometry_prior(self, k: int, pred: gtsam.Pose3) -> None:
-        """Paper IV.B: when the marginal positional σ exceeds the road width, the odometry estimate
-        becomes a prior (with σ = the road width), so uncertainty cannot grow without bound."""
-        cfg, sm = self.cfg, self._smoother
-        if not cfg.odometry_priors or sm is None or sm.last_updated_key < 0:
-            return
-        if self.track.t[k] - self._last_cov_check_t < cfg.odometry_prior_every_s:
-            return
-        self._last_cov_check_t = self.track.t[k]
-        sigmas = sm.position_sigmas()
-        if sigmas is None:
-            return
-        self._pos_sigma, self._lat_sigma, self._yaw_sigma = sigmas
-        prior = self._association.odometry_prior(k, pred, self._pos_sigma)
-        if prior is not None:
-            sm.add(prior)
-            self.counters.odometry_priors += 1
 
     # ------------------------------------------------------------------ GPS
     def _flush_gps(self) -> None:
@@ -380,9 +339,9 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
                 self._gate_and_add(k, *fix[1:])
 
     def _gate_and_add(self, k: int, x: float, y: float, alt: float | None, sigma: float) -> None:
-        verdict = self._gate.check(self.track, k, x, y, sigma, self._pos_sigma)
+        verdict = self._gate.check(self.track, k, x, y, sigma, self._estimate.pos_sigma_m)
         if verdict is Verdict.accept:
-            self._sm.add(factors.gps_factor(self.cfg.state, k, x, y, alt, sigma))
+            self._estimate.add(factors.gps_factor(self.cfg.state, k, x, y, alt, sigma))
             self.counters.gps_used += 1
             self._road_fixes.gps_used(self.track.t[k])
             return
@@ -391,8 +350,4 @@ class MapFusion(_Readings, MapSearching, RoadFixing):
             self.counters.gps_relocalisations += 1
             log.info("t=%.1f s: %d consistent GPS fixes disagree with the estimate: re-localising on GPS",
                      self.track.t[k], len(self._gate.run))
-            self._relocalise(sigma)
-
-    def _update(self) -> None:
-        if self._sm.update():
-            self._since_update = 0
+            self._gps_reanchoring.relocalise(sigma)

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from . import odometry_trust
 from .config import FusionConfig
 from .errors import InputError
 from .geometry import wrap_angle
@@ -321,7 +322,26 @@ class MotionFusion:
         self._before_init: dict[float, tuple[float, gtsam.Pose3]] = {}  # t → (units per wheel metre, step made)
         self._restated: tuple[float, float] | None = None
         self._wheel_m = self._odometry_units = 0.0  # over agreeing steps, with forgetting (uncalibrated metres)
-        self.sigma_factor = 1.0  # the learned odometry σ's factor (the engine sets it at initialisation)
+        self.sigma_factor = 1.0  # the learned odometry σ's factor (set at initialisation)
+
+    def learn_sigma(self, track: Track, alignment: Alignment, fixes: list) -> None:
+        """``odometry_sigma_learned``: the initialisation window's fixes set the factor on the odometry's σ
+        (:mod:`.odometry_trust`)."""
+        if self.cfg.odometry_sigma_learned and fixes:
+            trust = odometry_trust.from_window(self.cfg, track, alignment, fixes)
+            if trust is not None:
+                self.sigma_factor = trust.factor
+                log.info("odometry σ × %.3f: the window's drift %.2f-%.2f m against %.2f m at the configured σ "
+                         "(%d fixes)", trust.factor, trust.drift_low_m, trust.drift_m, trust.model_m, trust.fixes)
+
+    def cold_start(self) -> None:
+        """A cold start on the map: no window measured the odometry's drift (``odometry_sigma_cold_factor``)."""
+        if self.cfg.odometry_sigma_learned:
+            self.sigma_factor = self.cfg.odometry_sigma_cold_factor
+
+    def odometry_seen(self, t: float) -> None:
+        """The odometry's own frame at t has been taken."""
+        self.last_odometry_t = t
 
     @property
     def active(self) -> bool:

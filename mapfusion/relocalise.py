@@ -203,6 +203,25 @@ class RoadParticles:
         _, i = self._waypoint(edge, along)
         return self.road.yaw_rad[i] + np.where(direction < 0, math.pi, 0.0)
 
+    def drive_from(self, edge: int, direction: int, along_m: float, distance_m: float,
+                   target_xy: tuple[float, float], sigma_m: float, n: int) -> None:
+        """The particles replaced by ``n`` at one place (edge, direction, along), driven ``distance_m`` along the
+        graph, each taking at a vertex an exit drawn as near as it leads to ``target_xy`` (:meth:`_drive`)."""
+        self.edge, self.direction = np.full(n, edge, dtype=np.int64), np.full(n, direction, dtype=np.int64)
+        self.along = np.full(n, float(along_m))
+        self.offset, self.logw, self.driven_m = np.zeros(n), np.full(n, -math.log(n)), 0.0
+        self.log_scale, self._log_range = np.zeros(n), (0.0, 0.0)
+        self._drive(np.full(n, float(distance_m)), np.tile(np.asarray(target_xy, dtype=float), (n, 1)), sigma_m)
+
+    def headings(self) -> np.ndarray:
+        """Each particle's heading: its road's at its place, in its direction."""
+        return self._heading(self.edge, self.along, self.direction)
+
+    def allow_uturns(self, probability: float) -> None:
+        """Let the particles turn back with at least ``probability`` per step (``reloc_uturn_probability``)."""
+        if self.cfg.reloc_uturn_probability < probability:
+            self.cfg = dataclasses.replace(self.cfg, reloc_uturn_probability=probability)
+
     def _drive(self, distance: np.ndarray, target: np.ndarray, sigma_m: float) -> None:
         """Each particle drives its own distance along the graph. At a vertex it takes a legal exit drawn
         in proportion to how near the exit leads it to ``target`` (its expected end position, (n, 2)):
@@ -315,7 +334,7 @@ class RoadParticles:
         cum[-1] = 1.0
         idx = np.searchsorted(cum, (self.rng.random() + np.arange(n)) / n)
         if self.cfg.reloc_kld_epsilon > 0:  # as many as the occupied bins need (KLD-sampling), drawn afresh
-            m = min(max(kld_count(self._bins(idx), self.cfg.reloc_kld_epsilon), self.cfg.reloc_particles_min),
+            m = min(max(kld_count(_occupied_bins(self, idx), self.cfg.reloc_kld_epsilon), self.cfg.reloc_particles_min),
                     max(self._n_max, n))
             if m != n:
                 n = m
@@ -326,18 +345,6 @@ class RoadParticles:
             self._xy = self._xy[idx]
             self._xy.flags.writeable = False
         self.logw = np.full(n, -math.log(n))
-
-    def _bins(self, idx: np.ndarray) -> int:
-        """How many bins of the state the particles ``idx`` occupy: cells of ``reloc_kld_bin_m`` = b, each
-        direction, heading offsets per 2·b degrees, scales per b percent (each about b metres of position
-        after some 30-100 m of driving)."""
-        b = self.cfg.reloc_kld_bin_m
-        xy = self.positions()[idx]
-        key = np.floor(xy[:, 0] / b).astype(np.int64) * 2_000_003 + np.floor(xy[:, 1] / b).astype(np.int64)
-        key = key * 2 + (self.direction[idx] > 0)
-        key = key * 1024 + np.floor(self.offset[idx] / math.radians(2.0 * b)).astype(np.int64)
-        key = key * 2048 + np.floor(self.log_scale[idx] / (0.01 * b)).astype(np.int64)
-        return int(np.unique(key).size)
 
     def mass_within(self, x_m: float, y_m: float, radius_m: float,
                     outside: tuple[float, float, float] | None = None) -> float:
@@ -393,32 +400,47 @@ class RoadParticles:
                        math.exp(ls_mean), ls_sd)
 
 
-class RoadFollower(RoadParticles):
+def _occupied_bins(p: RoadParticles, idx: np.ndarray) -> int:
+    """How many bins of ``p``'s state its particles ``idx`` occupy: cells of ``reloc_kld_bin_m`` = b, each
+    direction, heading offsets per 2·b degrees, scales per b percent (each about b metres of position
+    after some 30-100 m of driving)."""
+    b = p.cfg.reloc_kld_bin_m
+    xy = p.positions()[idx]
+    key = np.floor(xy[:, 0] / b).astype(np.int64) * 2_000_003 + np.floor(xy[:, 1] / b).astype(np.int64)
+    key = key * 2 + (p.direction[idx] > 0)
+    key = key * 1024 + np.floor(p.offset[idx] / math.radians(2.0 * b)).astype(np.int64)
+    key = key * 2048 + np.floor(p.log_scale[idx] / (0.01 * b)).astype(np.int64)
+    return int(np.unique(key).size)
+
+
+class RoadFollower:
     """The outage step's road follower: a few drives along the graph from one place towards a guess."""
+
+    def __init__(self, road: RoadMap, cfg: FusionConfig, seed: int | list[int] = 0) -> None:
+        self.particles = RoadParticles(road, cfg, seed)
+
+    def road_pose(self, edge: int, direction: int, along_m: float) -> tuple[float, float, float]:
+        return self.particles.road_pose(edge, direction, along_m)
 
     def follow(self, edge: int, direction: int, along_m: float, distance_m: float, target_xy: tuple[float, float],
                sigma_m: float, n: int = 32, target_yaw_rad: float | None = None,
                weight_m_per_deg: float = 0.0, max_deg: float = 180.0) -> tuple[float, float, float]:
         """Drive ``distance_m`` along the graph from (edge, direction, along): ``n`` drives, each taking at a
-        vertex an exit drawn in proportion to how near it leads to ``target_xy`` (see :meth:`_drive`); the
-        end nearest the target is the answer, as (x, y, heading of its road in its direction). With
-        ``target_yaw_rad``, nearest by D = E + w·A (metres from the target plus ``weight_m_per_deg`` × degrees
-        from its heading, counted up to ``max_deg``): a drive that has just turned into a side street can end
-        nearer the target's position than the one that went on, with its heading 90° off. The filter's own
-        particles are replaced."""
-        self.edge = np.full(n, edge, dtype=np.int64)
-        self.direction = np.full(n, direction, dtype=np.int64)
-        self.along = np.full(n, float(along_m))
-        self.offset, self.logw, self.driven_m = np.zeros(n), np.full(n, -math.log(n)), 0.0
-        self.log_scale, self._log_range = np.zeros(n), (0.0, 0.0)
-        self._drive(np.full(n, float(distance_m)), np.tile(np.asarray(target_xy, dtype=float), (n, 1)), sigma_m)
-        xy = self.positions()
+        vertex an exit drawn in proportion to how near it leads to ``target_xy`` (see
+        :meth:`RoadParticles.drive_from`); the end nearest the target is the answer, as (x, y, heading of its road
+        in its direction). With ``target_yaw_rad``, nearest by D = E + w·A (metres from the target plus
+        ``weight_m_per_deg`` × degrees from its heading, counted up to ``max_deg``): a drive that has just turned
+        into a side street can end nearer the target's position than the one that went on, with its heading 90°
+        off."""
+        p = self.particles
+        p.drive_from(edge, direction, along_m, distance_m, target_xy, sigma_m, n)
+        xy = p.positions()
         cost = np.hypot(xy[:, 0] - target_xy[0], xy[:, 1] - target_xy[1])
         if target_yaw_rad is not None and weight_m_per_deg > 0:
-            off = np.abs(wrap_angle(self._heading(self.edge, self.along, self.direction) - target_yaw_rad))
+            off = np.abs(wrap_angle(p.headings() - target_yaw_rad))
             cost = cost + weight_m_per_deg * np.minimum(np.degrees(off), max_deg)
         i = int(np.argmin(cost))
-        return self.road_pose(int(self.edge[i]), int(self.direction[i]), float(self.along[i]))
+        return p.road_pose(int(p.edge[i]), int(p.direction[i]), float(p.along[i]))
 
 
 #: Step chords a turn back is told over (reloc_reverse_deg): four steps, some 20 m (a U-turn of up to ~8 m radius).
@@ -651,6 +673,18 @@ class Relocaliser:
         self.k0: int | None = None  # the caller's frame number of the first pose, when it gives one
         self.feed_scale: float | None = None  # the engine's odometry scale when it first fed this search
 
+    def fed_at(self, scale: float) -> float:
+        """The engine's odometry scale this search is fed at: ``scale`` at its first call, that one from then on."""
+        if self.feed_scale is None:
+            self.feed_scale = scale
+        return self.feed_scale
+
+    def hold_until(self, driven_m: float) -> float:
+        """Its answer held back: the search goes on until ``driven_m`` (set at the first call); that distance."""
+        if self.held_until_m is None:
+            self.held_until_m = driven_m
+        return self.held_until_m
+
     def add(self, x: float, y: float, yaw: float, frame: int | None = None) -> Located | None:
         """One odometry pose (``frame``: the caller's number for it, kept for the first); the converged answer,
         or None (not yet, or nothing in the region)."""
@@ -708,6 +742,18 @@ class Search:
         self.watching = None
         self.searches += 1
 
+    def stop(self) -> None:
+        """End the running search."""
+        self.active = None
+
+    def stop_watching(self) -> None:
+        """End the watched search."""
+        self.watching = None
+
+    def end(self) -> None:
+        """End the running and the watched search."""
+        self.active = self.watching = None
+
     def watch(self, search: Relocaliser) -> None:
         """Keep feeding ``search``, which has just re-anchored the estimate, over ``reloc_watch_m`` more driving
         (nothing when that is 0): its posterior is kept whole, so that a look-alike path it converged on can
@@ -717,9 +763,7 @@ class Search:
             self._watch_until_m = search.particles.driven_m + self.cfg.reloc_watch_m
             # a search's particles never turn back (over its few hundred metres the vehicle rarely does); followed
             # for longer, a vehicle that turns back kills the right cluster: watched, they may, as the road fixes' do
-            p = search.particles
-            if p.cfg.reloc_uturn_probability < self.cfg.road_fix_uturn_probability:
-                p.cfg = dataclasses.replace(p.cfg, reloc_uturn_probability=self.cfg.road_fix_uturn_probability)
+            search.particles.allow_uturns(self.cfg.road_fix_uturn_probability)
 
     def watched(self, x_m: float, y_m: float, yaw_rad: float, frame: int | None = None) -> Located | None:
         """One odometry pose (as :meth:`feed`) for the watched search; its converged answer, or None. Watching
@@ -738,9 +782,8 @@ class Search:
         ends) when the option is off or that driving is spent."""
         if not self.cfg.reloc_reweigh_held:
             return False
-        if search.held_until_m is None:
-            search.held_until_m = search.particles.driven_m + self.cfg.reloc_watch_m
-        if search.particles.driven_m >= search.held_until_m:
+        until_m = search.hold_until(search.particles.driven_m + self.cfg.reloc_watch_m)
+        if search.particles.driven_m >= until_m:
             return False
         self.active = search
         return True

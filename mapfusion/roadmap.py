@@ -190,6 +190,10 @@ class RoadMap:
         self.travel, self.against_drawing, self.legal_cos, self.legal_sin, self.two_way_sign = legal_travel(self)
         self._tree: cKDTree | None = None
         self._cells: CellIndex | None = None
+        self._neighbourhood: dict[int, np.ndarray] = {}  # (matching continuity's, by edge: built as asked)
+        self._edges_at: dict[int, list[int]] | None = None  # vertex → its edges
+        self._join_sorted: tuple[np.ndarray, np.ndarray] | None = None  # join curves' way-points by their vertex
+        self._continuations: dict[int, set[int]] | None = None
 
     # ----------------------------------------------------------------- construction
     @classmethod
@@ -357,19 +361,17 @@ class RoadMap:
     def neighbourhood(self, edge: int) -> np.ndarray:
         """Way-point indices of an edge, the edges sharing a vertex with it, and the join curves
         at its two vertices: where a vehicle on ``edge`` can be next (matching continuity)."""
-        cache = self.__dict__.setdefault("_neighbourhood", {})
+        cache = self._neighbourhood
         got = cache.get(edge)
         if got is not None:
             return got
-        if "_edges_at" not in self.__dict__:
+        if self._edges_at is None or self._join_sorted is None:
             edges_at: dict[int, list[int]] = {}
             for e, (u, v) in enumerate(zip(self.edge_u.tolist(), self.edge_v.tolist())):
                 edges_at.setdefault(u, []).append(e)
                 edges_at.setdefault(v, []).append(e)
             order = np.argsort(self.join_vertex, kind="stable")
-            jv = self.join_vertex[order]
-            self._edges_at = edges_at
-            self._join_sorted = (order, jv)
+            self._edges_at, self._join_sorted = edges_at, (order, self.join_vertex[order])
         ends = {int(self.edge_u[edge]), int(self.edge_v[edge])}
         edges = sorted({e for v in ends for e in self._edges_at.get(v, [])} | {edge})
         parts = [np.arange(self.edge_start[e], self.edge_end[e]) for e in edges]
@@ -384,7 +386,7 @@ class RoadMap:
     def continuations(self) -> dict[int, set[int]]:
         """Way id → the ways continuing it through a vertex of degree 2 (where OSM merely splits
         one road into two ways; junctions are the vertices of degree 3 or more)."""
-        if "_continuations" not in self.__dict__:
+        if self._continuations is None:
             at: dict[int, set[int]] = {}
             for e in range(len(self.edge_u)):
                 w = int(self.way_ids[self.edge_way_index[e]])

@@ -1,5 +1,5 @@
-"""The engine's search of the road network once the estimate is lost (issue 17; a part of
-:class:`~mapfusion.engine.MapFusion`, kept apart to keep it small): a search begun after an odometry gap,
+"""The search of the road network (issue 17): a cold start in a region (no GPS), and, with ``map_relocalisation``,
+a search once the estimate is lost — begun after an odometry gap,
 when the association calls the estimate lost or when GPS falls silent, run beside GPS when the estimate is
 lost while fixes still come, its answer re-anchoring the smoother (unless the posterior has not ruled the
 estimate's own place out), and the re-anchoring search watched on for a while after it acts. When GPS falls
@@ -8,37 +8,78 @@ re-anchors the estimate at once, without a search."""
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 
 import gtsam
 import numpy as np
 
-from .config import OutageStep
+from .association import MapAssociation
+from .config import FusionConfig, OutageStep
+from .errors import EngineError
+from .estimate import Estimate
 from .geometry import cumulative_length
-from .registering import FixRegistering
-from .relocalise import Guess, Located, Region, Relocaliser, enclosing_disc
-from .track import planar_of
+from .initialisation import Initialiser
+from .reanchoring import OutageCarry
+from .registering import FixRegistration, MapAnchors
+from .relocalise import Guess, Located, Region, Relocaliser, Search, enclosing_disc
+from .roadmap import RoadMap
+from .track import Track, planar_of
 
 log = logging.getLogger(__name__)
 
 
-class MapSearching(FixRegistering):
-    """Searching the road network for a lost estimate: mixed into MapFusion, whose state it reads."""
+class MapSearch:
+    """The search of the road network, begun by a cold start or when the estimate is lost; its answers proposed
+    to the estimate through :class:`~mapfusion.registering.MapAnchors`."""
 
-    def _search_when_lost(self, k: int, pred: gtsam.Pose3) -> None:
+    def __init__(self, road: RoadMap, cfg: FusionConfig, track: Track, estimate: Estimate, initialiser: Initialiser,
+                 association: MapAssociation, anchors: MapAnchors, registration: FixRegistration,
+                 carry: OutageCarry) -> None:
+        self.road, self.cfg, self.track = road, cfg, track
+        self._estimate, self._initialiser, self._association = estimate, initialiser, association
+        self._anchors, self._registration, self._carry = anchors, registration, carry
+        self.search = Search(road, cfg)
+        self._checked_fix_t = math.nan  # the last fix whose silence started a search
+        self._watch_last: Located | None = None  # the watched search's last answer (reloc_watch_m)
+        self._beside_gps = False  # the running search began while GPS came (it has not acted yet)
+
+    @property
+    def running(self) -> bool:
+        """A search is running (not only watched)."""
+        return self.search.active is not None
+
+    def start_in_region(self, x_m: float, y_m: float, radius_m: float) -> None:
+        """Cold start without GPS: the vehicle starts somewhere on the roads within ``radius_m`` of (x, y) (the map's
+        ENU frame); the odometry's shape finds it (scale in ``reloc_scale_min`` … ``reloc_scale_max``)."""
+        if not (math.isfinite(x_m) and math.isfinite(y_m) and math.isfinite(radius_m) and radius_m > 0):
+            raise EngineError(f"start region needs a finite position and radius > 0, got {x_m}, {y_m}, {radius_m}")
+        self.search.begin(Region(float(x_m), float(y_m), float(radius_m)),
+                          (self.cfg.reloc_scale_min, self.cfg.reloc_scale_max))
+
+    def feed_cold(self, raw: gtsam.Pose3) -> Located | None:
+        """A cold start's search fed the odometry's latest pose (its own units: the search finds the scale); the
+        answer once found."""
+        return self.search.feed(*planar_of(raw))
+
+    def stop(self) -> None:
+        """End any running or watched search (the estimate was re-anchored from outside)."""
+        self.search.end()
+
+    def when_lost(self, k: int, pred: gtsam.Pose3) -> None:
         """From the moment the estimate is lost, a search on the road network; once it converges away from
         the estimate, the smoother is re-anchored there (issue 17; near the estimate it only confirms it)."""
         if not self.cfg.use_map:  # (the baseline: no map, so no search on it)
             return
-        assoc, search = self._association, self._search
-        fixes = self.initialiser.fixes
-        if self._register_due(k) and self._register_fixes(k, pred):  # the fixes' own shape placed on the roads
-            search.active, search.watching, self._beside_gps = None, None, False
+        assoc, search = self._association, self.search
+        fixes = self._initialiser.fixes
+        reg = self._registration
+        if reg.due(k, self._beside_gps) and reg.register(k, pred):  # the fixes' own shape placed on the roads
+            search.end()
+            self._beside_gps = False
             return
         if fixes and self.track.t[k] - fixes[-1][0] < self.cfg.reloc_after_gps_s:
-            search.watching = None  # (GPS is back: it places the estimate)
+            search.stop_watching()  # (GPS is back: it places the estimate)
             self._search_beside_gps(k, pred)  # GPS is here: it places the estimate, not a search of the map
             return
         if self._beside_gps:  # GPS fell silent with a search running beside it: that search is the silence's
@@ -52,17 +93,16 @@ class MapSearching(FixRegistering):
             reach = gap_s * self.cfg.reloc_gap_speed_mps
             if self.cfg.outage_step is not OutageStep.odometry:  # (the carried step, and its σ: the speed in the gap)
                 carried = math.hypot(pred.x() - prev.x(), pred.y() - prev.y())
-                reach = max(reach, carried + self.cfg.reloc_gap_reach_sigmas * self._carried_sigma_m(carried))
+                reach = max(reach, carried + self.cfg.reloc_gap_reach_sigmas * self._carry.carried_sigma_m(carried))
             region = Region(prev.x(), prev.y(), self.cfg.reloc_gap_margin_m + reach)
             search.begin(self._still_open(region, reach), frame=k, guess=self._gap_guess(prev, pred))
             return
-        if assoc.became_lost:
-            assoc.became_lost = False
+        if assoc.take_became_lost():
             if search.active is None:  # (a running search goes on: its particles know more than a new one's)
                 x, y = assoc.explained_xy or (pred.x(), pred.y())
                 f = self.cfg.reloc_lost_scale_factor  # (relative to the scale the search is fed at)
                 search.begin(self._doubting(k, search.lost_region(x, y, assoc.unexplained_m)), (1.0 / f, f), frame=k)
-        elif search.active is None and self._gps_went_silent(k) and self._registered_fix_t != fixes[-1][0] \
+        elif search.active is None and self._gps_went_silent(k) and reg.registered_fix_t != fixes[-1][0] \
                 and self._gps_left_it_off_the_roads(k):
             self._search_since_gps(k, pred)  # a second opinion on where GPS left it (the fixes not placed already)
         search.widen_if_stuck(pred.x(), pred.y(), k)
@@ -93,7 +133,7 @@ class MapSearching(FixRegistering):
         if cfg.reloc_gap_guess_floor >= 1.0:
             return None
         length_m = math.hypot(pred.x() - prev.x(), pred.y() - prev.y())
-        return Guess(pred.x(), pred.y(), self._carried_sigma_m(length_m),
+        return Guess(pred.x(), pred.y(), self._carry.carried_sigma_m(length_m),
                      pred.rotation().yaw(), math.radians(cfg.outage_rot_sigma_deg), cfg.reloc_gap_guess_floor,
                      (prev.x(), prev.y()) if cfg.reloc_gap_guess_along else None)
 
@@ -103,7 +143,7 @@ class MapSearching(FixRegistering):
         search's region grown by the distance driven since it began and by the gap's ``reach_m`` (the vehicle may be
         anywhere that search had not ruled out, the estimate it left being no better than its guess), at most
         ``reloc_max_radius_m``."""
-        running = self._search.active
+        running = self.search.active
         if running is None or not self.cfg.reloc_gap_keeps_region:
             return region
         old = running.region
@@ -128,10 +168,10 @@ class MapSearching(FixRegistering):
         """GPS has fallen silent: a search around where it left the estimate, begun ``reloc_gps_replay_m`` of
         driving back (around the estimate there) and fed the frames since at once, so that the path driven under
         the fixes already counts (all the fixes of a window may share one bias that only the roads can show)."""
-        k0 = self._replay_start(k, self.cfg.reloc_gps_replay_m)
+        k0 = self._anchors.replay_start(k, self.cfg.reloc_gps_replay_m)
         centre = self.track.online[k0] if k0 < k else pred  # (every frame it steps back over has an estimate)
         assert centre is not None
-        search = self._search
+        search = self.search
         search.begin(Region(centre.x(), centre.y(), self.cfg.reloc_radius_m), frame=k)
         active = search.active
         assert active is not None
@@ -142,11 +182,9 @@ class MapSearching(FixRegistering):
         """Frame k's planar odometry pose for ``search`` (x and y in metres, yaw), at the scale the search was first
         fed with: the engine's scale moves while a search runs (GPS refits beside GPS, road fixes while it is
         watched), and a new scale times positions kilometres from the odometry's origin would jump its steps."""
-        assert self.alignment is not None
-        if search.feed_scale is None:
-            search.feed_scale = self.alignment.scale
+        scale = search.fed_at(self._estimate.aligned.scale)
         x, y, yaw = planar_of(self.track.raw[k])
-        return x * search.feed_scale, y * search.feed_scale, yaw
+        return x * scale, y * scale, yaw
 
     def _watch_reanchoring(self, k: int, pred: gtsam.Pose3) -> None:
         """The search that re-anchored the estimate goes on (``reloc_watch_m``). If its posterior's mass moves to
@@ -156,7 +194,7 @@ class MapSearching(FixRegistering):
         the estimate (until then the jump is weighed again at each step). If instead its one cluster drifts away
         from the estimate (a manoeuvre its particles could not follow), the watched posterior no longer means
         anything: watching ends."""
-        search = self._search
+        search = self.search
         watched = search.watching
         assert watched is not None
         loc = search.watched(*self._search_pose(k, watched), k)
@@ -173,7 +211,7 @@ class MapSearching(FixRegistering):
         if not jumped:
             log.info("t=%.1f s: the watched search's cluster drifted %.0f m from the estimate: watching ends",
                      self.track.t[k], off)
-            search.watching = None
+            search.stop_watching()
             return
         if self._rival_at_estimate(k, pred, loc, watched):
             # (the answer that jumped is not the last one yet: at the next step it has still jumped, and the rival
@@ -208,26 +246,27 @@ class MapSearching(FixRegistering):
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
                  math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
-        if active.particles.scale_free and active.feed_scale is not None and self.alignment is not None:
+        est = self._estimate
+        if active.particles.scale_free and active.feed_scale is not None and est.alignment is not None:
             scale = active.feed_scale * loc.scale  # (the search's scale is relative to the one it was fed at)
-            log.info("the search's scale re-scales the odometry: %.4f → %.4f", self.alignment.scale, scale)
-            self.alignment = dataclasses.replace(self.alignment, scale=scale)
-        self._reanchor_on_map(k, pred, pose, max(loc.spread_m, 2.0), max(loc.yaw_spread_rad, math.radians(2.0)),
-                              active.k0 if active.k0 is not None else k, active.region, loc.driven_m)
-        self._search.watch(active)
+            log.info("the search's scale re-scales the odometry: %.4f → %.4f", est.alignment.scale, scale)
+            est.set_scale(scale)
+        self._anchors.reanchor(k, pred, pose, max(loc.spread_m, 2.0), max(loc.yaw_spread_rad, math.radians(2.0)),
+                               active.k0 if active.k0 is not None else k, active.region, loc.driven_m)
+        self.search.watch(active)
         self._watch_last = loc
 
     def _search_beside_gps(self, k: int, pred: gtsam.Pose3) -> None:
         """While GPS comes: no search unless the estimate is lost (``reloc_under_gps``); then one runs, fed but
         never acted on, so that when GPS falls silent its particles already know where the odometry's path fits
         the roads (a fix window sharing one bias keeps the estimate off the roads long before GPS ends)."""
-        assoc, search = self._association, self._search
-        if not self.cfg.reloc_under_gps or self.alignment is None or not (assoc.lost or self._beside_gps):
-            search.active = None
+        assoc, search = self._association, self.search
+        if not self.cfg.reloc_under_gps or self._estimate.alignment is None or not (assoc.lost or self._beside_gps):
+            search.stop()
             self._beside_gps = False
             return
         if search.active is None or not self._beside_gps:
-            assoc.became_lost = False
+            assoc.take_became_lost()
             x, y = assoc.explained_xy or (pred.x(), pred.y())
             search.begin(search.lost_region(x, y, assoc.unexplained_m), frame=k)
             self._beside_gps = True
@@ -236,7 +275,7 @@ class MapSearching(FixRegistering):
             search.widen_if_stuck(pred.x(), pred.y(), k)
         loc = search.active.add(*self._search_pose(k, search.active), k)  # (not feed: a converged search goes on)
         if loc is not None and math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
-            search.active = None  # the map confirms GPS: a search that found the estimate ends
+            search.stop()  # the map confirms GPS: a search that found the estimate ends
             self._beside_gps = False
 
     def _doubting(self, k: int, region: Region) -> Region:
@@ -244,17 +283,29 @@ class MapSearching(FixRegistering):
         re-anchoring: that re-anchoring may have been the wrong turn, so the region also covers the one the
         re-anchoring's search ran in, grown by the distance driven since (the smallest disc holding both, at most
         ``reloc_max_radius_m``)."""
-        cfg = self.cfg
-        if self._map_anchor is None or cfg.reloc_doubt_m <= 0 or self.alignment is None:
+        cfg, a = self.cfg, self._estimate.alignment
+        if self._anchors.last is None or cfg.reloc_doubt_m <= 0 or a is None:
             return region
-        k0, old = self._map_anchor
+        k0, old = self._anchors.last
         track = self.track
         if k0 < track.first:
             return region
         pts = np.array([planar_of(track.raw[j])[:2] for j in range(k0, k + 1)])
-        driven = float(cumulative_length(pts)[-1]) * self.alignment.scale
+        driven = float(cumulative_length(pts)[-1]) * a.scale
         if driven > cfg.reloc_doubt_m:
             return region
         grown = Region(old.x_m, old.y_m, old.radius_m + driven)
         both = enclosing_disc(region, grown)
         return Region(both.x_m, both.y_m, min(both.radius_m, cfg.reloc_max_radius_m))
+
+    def _gps_went_silent(self, k: int) -> bool:
+        """True once per GPS outage: the last fix is ``reloc_after_gps_s`` old (the estimate is where GPS left
+        it — a biased fix window leaves it in the wrong place, and nothing but the map can tell)."""
+        fixes = self._initialiser.fixes
+        if not fixes or self.cfg.reloc_after_gps_s <= 0:
+            return False
+        last = fixes[-1][0]
+        if last == self._checked_fix_t or self.track.t[k] - last < self.cfg.reloc_after_gps_s:
+            return False
+        self._checked_fix_t = last
+        return True

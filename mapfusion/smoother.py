@@ -98,6 +98,12 @@ class Smoother:
         self.pending.keys.append(k)
         self.last_key = k
 
+    def seed(self, poses: list[gtsam.Pose3]) -> None:
+        """Frames 0 … len(poses) - 1 final at ``poses`` (the initialisation's batch before its last frame)."""
+        for k, pose in enumerate(poses):
+            self.smoothed[k] = pose
+        self.smoothed_upto = len(poses) - 1
+
     def restart(self) -> None:
         """A fresh backend, nothing pending, no updated frame (a re-localisation follows)."""
         self.backend = _Backend(self.cfg)

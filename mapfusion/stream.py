@@ -38,7 +38,7 @@ class Release:
     def step(self, engine) -> None:
         """After each frame: release what is old and final, a batch at a time. (Not with ISAM2 over
         the whole history: it refines every frame to the end, so none is final before it.)"""
-        track, sm = engine.track, engine._smoother
+        track, sm = engine.track, engine.smoother
         if self.on_final is None or sm is None or not sm.backend.fixed_lag:
             return
         upto = track.first
@@ -55,7 +55,7 @@ class Release:
         track = engine.track
         if self.on_final is None:  # not streaming: the engine keeps everything
             return
-        if engine._smoother is None:
+        if engine.smoother is None:
             for _, t in list(track.t.held()):
                 self.on_final(t, None, None)
         else:
@@ -65,7 +65,7 @@ class Release:
         track.drop_before(len(track))
 
     def _hand_out(self, engine, upto: int) -> None:
-        track, sm = engine.track, engine._smoother
+        track, sm = engine.track, engine.smoother
         assert self.on_final is not None
         for k in range(track.first, upto):
             online = track.online[k]

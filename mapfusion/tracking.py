@@ -36,17 +36,15 @@ import gtsam
 import numpy as np
 
 from . import factors
-from .association import MapAssociation
 from .config import FusionConfig
 from .counters import Counters
-from .relocalise import Guess, Located, Region, RoadParticles, Search
+from .estimate import Estimate
+from .relocalise import Guess, Located, Region, RoadParticles
 from .roadmap import RoadMap
-from .smoother import Smoother
-from .track import Alignment, Track, planar_of
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RoadFixes", "RoadFixing", "particle_config"]
+__all__ = ["RoadFixes", "particle_config"]
 
 
 def particle_config(cfg: FusionConfig) -> FusionConfig:
@@ -105,6 +103,29 @@ class RoadFixes:
         """Stop the particles: they start afresh (around the estimate then) at a later frame."""
         self.particles = None
         self._pending = None
+
+    def fix(self, k: int, t: float, raw_xy_yaw: tuple[float, float, float], pred: gtsam.Pose3, estimate: Estimate,
+            searching: bool, kept_to_roads: Callable[[], bool]) -> gtsam.NonlinearFactor | None:
+        """The particles' fix on frame k while GPS is silent (None: none), proposed with a scale: each fix moves the
+        estimate's odometry scale ``road_fix_scale_gain`` of the way (in log) to the fix's (the map observes the
+        scale). ``searching``: a map search runs (without ``road_fix_while_searching`` the particles stop, to start
+        afresh around the estimate it leaves); ``kept_to_roads()``: the estimate's recent path kept to the roads."""
+        if not self.enabled:
+            return None
+        cfg = self.cfg
+        if searching and not cfg.road_fix_while_searching:
+            self.drop()
+            return None
+        a = estimate.aligned
+        near_only = cfg.map_relocalisation and (cfg.road_fix_near_only or cfg.road_fix_trust_fit and kept_to_roads())
+        fix = self.step(k, t, raw_xy_yaw, a.scale, pred, estimate.pos_sigma_m, near_only=near_only,
+                        yaw_sigma_rad=estimate.yaw_sigma_rad)
+        if fix is None:
+            return None
+        loc, gain = self.last, cfg.road_fix_scale_gain
+        if loc is not None and gain > 0:
+            estimate.set_scale(math.exp((1.0 - gain) * math.log(a.scale) + gain * math.log(loc.scale)))
+        return fix
 
     def step(self, k: int, t: float, raw_xy_yaw: tuple[float, float, float], scale: float, pred: gtsam.Pose3,
              sigma_m: float, near_only: bool = False, yaw_sigma_rad: float = math.inf) -> gtsam.NonlinearFactor | None:
@@ -246,44 +267,3 @@ class RoadFixes:
         self._ref, self._ref_slack_m, self._ref_pending = (pred.x(), pred.y(), pred.x(), pred.y()), radius, False
         log.info("GPS silent: road particles follow the vehicle from (%.0f, %.0f), %.0f m around, %d particles",
                  pred.x(), pred.y(), radius, len(self.particles))
-
-
-class RoadFixing:
-    """The engine's side of the road fixes: mixed into MapFusion, whose state it reads."""
-
-    cfg: FusionConfig
-    track: Track
-    counters: Counters
-    alignment: Alignment | None
-    _road_fixes: RoadFixes
-    _pos_sigma: float
-    _yaw_sigma: float
-    _smoother: Smoother | None
-    _search: Search
-    _association: MapAssociation
-    _restart_from: Callable[..., None]
-    map_prior_frames: list[int]
-
-    def _road_fix(self, k: int, pred: gtsam.Pose3) -> bool:
-        """The road particles' fix on frame k while GPS is silent; True if added. Each fix also moves the
-        odometry's scale ``road_fix_scale_gain`` of the way (in log) to the fix's (the map observes the scale)."""
-        rf = self._road_fixes
-        if not rf.enabled:
-            return False
-        if self._search.active is not None and not self.cfg.road_fix_while_searching:
-            rf.drop()  # (they start afresh around the estimate the search leaves)
-            return False
-        assert self.alignment is not None and self._smoother is not None
-        cfg = self.cfg
-        near_only = cfg.map_relocalisation and (cfg.road_fix_near_only or cfg.road_fix_trust_fit
-                                                and self._association.kept_to_roads())
-        fix = rf.step(k, self.track.t[k], planar_of(self.track.raw[k]), self.alignment.scale, pred, self._pos_sigma,
-                      near_only=near_only, yaw_sigma_rad=self._yaw_sigma)
-        if fix is None:
-            return False
-        self._smoother.add(fix)
-        loc, gain = rf.last, self.cfg.road_fix_scale_gain
-        if loc is not None and gain > 0:
-            scale = math.exp((1.0 - gain) * math.log(self.alignment.scale) + gain * math.log(loc.scale))
-            self.alignment = dataclasses.replace(self.alignment, scale=scale)
-        return True

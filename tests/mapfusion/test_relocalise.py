@@ -203,7 +203,7 @@ def test_a_cold_start_takes_odometry_sigma_cold_factor_on_its_odometry_sigma(roa
     assert first is not None and eng.odometry_sigma_factor == expected
     step = gtsam.Pose3(gtsam.Rot3.Yaw(0.01), gtsam.Point3(1.0, 0.0, 0.0))
     plain = factors.odometry_noise(cfg, step, 1.0, 0.1).sigmas()
-    between = eng._between(len(eng.track) - 1, step=step).noiseModel().sigmas()
+    between = eng._estimate.between(len(eng.track) - 1, step=step).noiseModel().sigmas()
     # (the planar state's roll, pitch and z hold fixed tiny σ; yaw, x and y carry the odometry's)
     assert np.allclose(between[2:5], expected * plain[2:5]) and np.allclose(between[[0, 1, 5]], plain[[0, 1, 5]])
 
@@ -343,8 +343,8 @@ def test_a_search_after_a_long_fast_outage_covers_where_the_vehicle_went():
             eng.add_odometry(0.1 * k, rel)
             last = k
             if k == resumed:
-                assert eng._search.active is not None
-                region = eng._search.active.region
+                assert eng._map_search.search.active is not None
+                region = eng._map_search.search.active.region
         assert region is not None
         assert math.hypot(x[resumed] - region.x_m, y[resumed] - region.y_m) < region.radius_m - 50.0, (seed, region)
         eng.finish()
@@ -391,8 +391,8 @@ def test_a_search_after_a_gap_covers_a_vehicle_that_sped_up_in_it():
             eng.add_odometry(0.1 * k, rel)
             last = k
         assert eng.initialised_at is not None and eng.initialised_at < 0.1 * lost
-        assert eng._search.active is not None
-        region = eng._search.active.region
+        assert eng._map_search.search.active is not None
+        region = eng._map_search.search.active.region
         off = math.hypot(x[resumed] - region.x_m, y[resumed] - region.y_m)
         assert (off < region.radius_m - 25.0) is inside and (off > region.radius_m) is not inside, (sigmas, off, region)
 
@@ -527,19 +527,19 @@ def test_a_mend_that_would_take_a_path_off_its_roads_is_not_made(road, on_roads)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, 3, heading_rad=0.3, noise_m=0.02)
     cfg = FusionConfig(road_fixes=False, reloc_mend_keep_ratio=0.5 if on_roads else 0.0)
     eng, _ = _feed(road, cfg, x, y, ox, oy, oyaw, len(x))
-    sm = eng._smoother
+    sm = eng.smoother
     k1 = max(sm.smoothed)
     k0 = k1 - 400
     before = {j: sm.smoothed[j] for j in range(k0, k1)}
     was = sm.smoothed[k1]
     swung = gtsam.Pose3(gtsam.Rot3.Yaw(was.rotation().yaw() + math.radians(25.0)), was.translation())
-    eng._mend_searched(k0, k1, was, swung)
+    eng._anchors.mend_searched(k0, k1, was, swung)
     unchanged = all(sm.smoothed[j].equals(before[j], 1e-12) for j in range(k0, k1))
     assert unchanged is on_roads
     off = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(150.0, -150.0, 0.0))
     for j in range(k0, k1 + 1):
         sm.smoothed[j] = off.compose(before.get(j, was))
-    eng._mend_searched(k0, k1, off.compose(was), was)
+    eng._anchors.mend_searched(k0, k1, off.compose(was), was)
     err = max(math.hypot(sm.smoothed[j].x() - before[j].x(), sm.smoothed[j].y() - before[j].y()) for j in range(k0, k1))
     assert err < 1e-6, err
 
@@ -551,7 +551,7 @@ def test_a_search_beside_gps_never_moves_the_estimate_while_fixes_come(road):
     on, err_on = _biased_window(road, 2, True, 10**9)
     off, err_off = _biased_window(road, 2, False, 10**9)
     assert on.counters.lost_events >= 1
-    assert on._search.searches >= 1  # it did search
+    assert on._map_search.search.searches >= 1  # it did search
     assert on.counters.map_relocalisations == 0 and err_on == pytest.approx(err_off, abs=1e-9)
 
 
@@ -714,16 +714,16 @@ def test_a_search_soon_after_a_map_re_anchoring_also_covers_that_search_s_region
     k0 = k - 300  # 300 frames (about 300 m) before the last
     driven = float(np.sum(np.hypot(np.diff(x[k0:]), np.diff(y[k0:]))))
     old, lost = Region(x[k0] + 500.0, y[k0], 300.0), Region(x[k], y[k], 300.0)
-    eng._map_anchor = (k0, old)
-    got = eng._doubting(k, lost)
+    eng._anchors.last = (k0, old)
+    got = eng._map_search._doubting(k, lost)
     for r, radius in ((lost, lost.radius_m), (old, old.radius_m + 0.9 * driven)):
         assert math.hypot(r.x_m - got.x_m, r.y_m - got.y_m) + radius <= got.radius_m + 1e-6
     assert got.radius_m <= cfg.reloc_max_radius_m
-    assert eng._doubting(k, lost) != lost
-    eng.cfg = dataclasses.replace(cfg, reloc_doubt_m=0.0)
-    assert eng._doubting(k, lost) == lost
-    eng.cfg = dataclasses.replace(cfg, reloc_doubt_m=0.5 * driven)
-    assert eng._doubting(k, lost) == lost
+    assert eng._map_search._doubting(k, lost) != lost
+    eng._map_search.cfg = dataclasses.replace(cfg, reloc_doubt_m=0.0)
+    assert eng._map_search._doubting(k, lost) == lost
+    eng._map_search.cfg = dataclasses.replace(cfg, reloc_doubt_m=0.5 * driven)
+    assert eng._map_search._doubting(k, lost) == lost
 
 
 @settings(max_examples=20, deadline=None)
@@ -739,11 +739,11 @@ def test_a_gap_while_a_search_runs_also_covers_the_running_search_s_region(road,
     eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
     x0, y0 = (float(v) for v in road.xy_m[0])
     mine = Region(x0, y0, new_r)
-    assert eng._still_open(mine, reach) == mine  # (nothing running)
+    assert eng._map_search._still_open(mine, reach) == mine  # (nothing running)
     running = Relocaliser(road, cfg, Region(x0 + dx, y0 + dy, old_r))
     running.particles.driven_m = driven
-    eng._search.active = running
-    got = eng._still_open(mine, reach)
+    eng._map_search.search.active = running
+    got = eng._map_search._still_open(mine, reach)
     grown = old_r + driven + reach
     if got.radius_m < cfg.reloc_max_radius_m:
         for r, radius in ((mine, new_r), (running.region, grown)):
@@ -751,8 +751,8 @@ def test_a_gap_while_a_search_runs_also_covers_the_running_search_s_region(road,
         assert got.radius_m <= max(new_r, grown, 0.5 * (math.hypot(dx, dy) + new_r + grown)) + 1e-6  # the smallest
     else:
         assert got.radius_m == cfg.reloc_max_radius_m
-    eng.cfg = dataclasses.replace(cfg, reloc_gap_keeps_region=False)
-    assert eng._still_open(mine, reach) == mine
+    eng._map_search.cfg = dataclasses.replace(cfg, reloc_gap_keeps_region=False)
+    assert eng._map_search._still_open(mine, reach) == mine
 
 
 def test_a_watched_search_ends_after_its_distance_and_when_another_begins(road):
@@ -805,7 +805,7 @@ def test_a_watched_search_takes_a_wrong_re_anchoring_back_to_where_its_posterior
                 assert loc is not None and math.hypot(loc.x_m - x[k], loc.y_m - y[k]) < 15.0
                 wrong = dataclasses.replace(loc, x_m=loc.x_m + 200.0)
                 pred = eng.track.online[k]
-                eng._map_reanchor(k, pred, wrong, r)  # (which also watches r on)
+                eng._map_search._map_reanchor(k, pred, wrong, r)  # (which also watches r on)
                 p = eng.track.online[k]
                 assert math.hypot(p.x() - x[k] - 200.0, p.y() - y[k]) < 10.0  # (re-anchored where it was told)
         eng.finish()
@@ -837,21 +837,21 @@ def test_a_watched_jump_held_back_by_rival_mass_is_weighed_again_until_the_mass_
     eng.add_odometry(0.0, np.eye(4))
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0))
     watched = Relocaliser(road, CFG, Region(x0, y0, 60.0))
-    eng._search.watching = watched
+    eng._map_search.search.watching = watched
     far = 6.0 * CFG.reloc_watch_apart_m
     answers = iter([Located(x0 + 2.0, y0, 0.0, 0.0, 0, 1, 0.0, 0.9, 2.0, 0.01, 100.0),
                     Located(x0 + far, y0, 0.0, 0.0, 0, 1, 0.0, 0.9, 2.0, 0.01, 105.0),
                     Located(x0 + far + 5.0, y0, 0.0, 0.0, 0, 1, 0.0, 0.95, 2.0, 0.01, 110.0)])
     rivals = iter([True, False])
     anchored = []
-    eng._search.watched = lambda *a, **kw: next(answers)
-    eng._search_pose = lambda k, search: (0.0, 0.0, 0.0)
-    eng._rival_at_estimate = lambda k, p, loc, search: next(rivals)
-    eng._map_reanchor = lambda k, p, loc, search: anchored.append(loc.x_m - x0)
-    eng._watch_reanchoring(0, pred)  # (agrees with the estimate)
-    eng._watch_reanchoring(0, pred)  # (jumped, rival mass left at the estimate)
-    assert anchored == [] and eng._search.watching is watched
-    eng._watch_reanchoring(0, pred)  # (still jumped, no rival mass left)
+    eng._map_search.search.watched = lambda *a, **kw: next(answers)
+    eng._map_search._search_pose = lambda k, search: (0.0, 0.0, 0.0)
+    eng._map_search._rival_at_estimate = lambda k, p, loc, search: next(rivals)
+    eng._map_search._map_reanchor = lambda k, p, loc, search: anchored.append(loc.x_m - x0)
+    eng._map_search._watch_reanchoring(0, pred)  # (agrees with the estimate)
+    eng._map_search._watch_reanchoring(0, pred)  # (jumped, rival mass left at the estimate)
+    assert anchored == [] and eng._map_search.search.watching is watched
+    eng._map_search._watch_reanchoring(0, pred)  # (still jumped, no rival mass left)
     assert anchored == [pytest.approx(far + 5.0)]
 
 
@@ -869,15 +869,15 @@ def _engine_searching(road, cfg, answers, rivals):
     eng.add_odometry(0.0, np.eye(4))
     eng.add_odometry(0.1, np.eye(4))
     running = Relocaliser(road, CFG, Region(x0, y0, 60.0))
-    eng._search.active = running
+    eng._map_search.search.active = running
     located = iter([Located(x0 + dx, y0, 0.0, 0.0, 0, 1, 0.0, 0.95, 2.0, 0.01, 150.0 + i)
                     for i, dx in enumerate(answers)])
     verdicts = iter(rivals)
     anchored: list[float] = []
     running.add = lambda *a, **kw: next(located)
-    eng._search_pose = lambda k, s: (0.0, 0.0, 0.0)
-    eng._rival_at_estimate = lambda k, p, loc, s: next(verdicts)
-    eng._map_reanchor = lambda k, p, loc, s: anchored.append(loc.x_m - x0)
+    eng._map_search._search_pose = lambda k, s: (0.0, 0.0, 0.0)
+    eng._map_search._rival_at_estimate = lambda k, p, loc, s: next(verdicts)
+    eng._map_search._map_reanchor = lambda k, p, loc, s: anchored.append(loc.x_m - x0)
     return eng, gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0)), running, anchored
 
 
@@ -891,11 +891,11 @@ def test_a_search_answer_held_back_by_rival_mass_is_weighed_again_until_the_mass
     far = 3.0 * CFG.reloc_confirm_m
     eng, pred, running, anchored = _engine_searching(road, dataclasses.replace(CFG, reloc_reweigh_held=reweigh),
                                                      [far, far + 5.0], [True, False])
-    search = eng._search
-    eng._search_when_lost(1, pred)  # (converged, rival mass left at the estimate)
+    search = eng._map_search.search
+    eng._map_search.when_lost(1, pred)  # (converged, rival mass left at the estimate)
     assert anchored == []
     assert search.active is (running if reweigh else None)
-    eng._search_when_lost(1, pred)  # (its next answer, no rival mass left)
+    eng._map_search.when_lost(1, pred)  # (its next answer, no rival mass left)
     assert anchored == ([pytest.approx(far + 5.0)] if reweigh else [])
 
 
@@ -907,10 +907,10 @@ def test_a_converged_answer_farther_than_reloc_confirm_m_re_anchors_the_estimate
     eng, pred, _, anchored = _engine_searching(road, dataclasses.replace(CFG, reloc_confirm_m=confirm_m), [off_m],
                                                [False])
     x0 = pred.x()
-    eng._search_when_lost(1, pred)
+    eng._map_search.when_lost(1, pred)
     off_m = (x0 + off_m) - x0  # (the distance as the engine sees it, to the last bit)
     assert anchored == ([pytest.approx(off_m)] if off_m > confirm_m else [])
-    assert eng._search.active is None
+    assert eng._map_search.search.active is None
 
 
 def test_a_search_answer_12_m_from_the_estimate_is_taken_by_default(road):
@@ -919,7 +919,7 @@ def test_a_search_answer_12_m_from_the_estimate_is_taken_by_default(road):
     13-19 m of along-road error for 80 s after its search converged 12 m away with a 2.9 m spread (5 m from the
     truth); re-anchored there, 5 m then 1-4 m (docs/method.md)."""
     eng, pred, _, anchored = _engine_searching(road, CFG, [12.0], [False])
-    eng._search_when_lost(1, pred)
+    eng._map_search.when_lost(1, pred)
     assert anchored == [pytest.approx(12.0)]
 
 
@@ -958,7 +958,7 @@ def test_a_search_that_still_holds_mass_at_the_estimate_does_not_move_it(road):
         pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(at[0], at[1], 0.0))
         near = r.particles.mass_within(at[0], at[1], 2.0 * CFG.reloc_converge_radius_m)
         assert (near >= 0.05) == (at == (x0, y0))  # (the setup: the region's roads lie around the estimate)
-        assert eng._rival_at_estimate(0, pred, answer, r) is expected
+        assert eng._map_search._rival_at_estimate(0, pred, answer, r) is expected
 
 
 def test_an_answer_near_the_estimate_is_not_its_own_rival(road):
@@ -979,7 +979,7 @@ def test_an_answer_near_the_estimate_is_not_its_own_rival(road):
     for outside, expected in ((True, False), (False, True)):
         eng = MapFusion(road, dataclasses.replace(CFG, reloc_rival_outside_answer=outside), odometry_rate_hz=10.0)
         eng.add_odometry(0.0, np.eye(4))
-        assert eng._rival_at_estimate(0, pred, answer, r) is expected
+        assert eng._map_search._rival_at_estimate(0, pred, answer, r) is expected
 
 
 @settings(max_examples=60, deadline=None)
@@ -1029,12 +1029,12 @@ def test_gps_that_left_the_estimate_on_the_roads_gets_no_second_opinion(road):
     ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
     cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_register_ratio=0.0)
     good, err_good = _feed(road, cfg, x, y, ox, oy, oyaw, 700)
-    assert good._search.searches == 0 and good.counters.map_relocalisations == 0
+    assert good._map_search.search.searches == 0 and good.counters.map_relocalisations == 0
     assert err_good < 15.0
     biased, err_biased = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0))
-    assert biased._search.searches >= 1 and biased.counters.map_relocalisations >= 1 and err_biased < 15.0
+    assert biased._map_search.search.searches >= 1 and biased.counters.map_relocalisations >= 1 and err_biased < 15.0
     always, _ = _feed(road, dataclasses.replace(cfg, reloc_gps_fit_min=0.0), x, y, ox, oy, oyaw, 700)
-    assert always._search.searches >= 1
+    assert always._map_search.search.searches >= 1
 
 
 @pytest.fixture(scope="module")

@@ -265,7 +265,7 @@ def test_road_fixes_wait_while_a_search_runs(road):
             if k % 10 == 0 and k < 400:
                 lat, lon = road.projection.to_geo(x[k], y[k])
                 eng.add_gps(0.1 * k, float(lat), float(lon), None, 1.0)
-            searching, before = eng._search.active is not None, eng.counters.road_fixes
+            searching, before = eng._map_search.running, eng.counters.road_fixes
             eng.add_odometry(0.1 * k, odometry_step(ox, oy, oyaw, k))
             new = eng.counters.road_fixes - before
             searched += searching
