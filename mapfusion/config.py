@@ -479,9 +479,9 @@ class FusionConfig:
         "sideways component of the measured step (a VO's lateral drift, as raindrops on the lens make) is "
         "an error of the odometry, not motion; false: the step as measured (the paper). Steps across gaps over a "
         "second are left as measured.",
-        source="issue 17, session 40: the cold start on KITTI 01 in rain slid 8 m across its trunk road in 3 s, "
-        "heading right, and was matched to a parallel service road; on by default since session 41, with "
-        "odometry_slip_deg 3 and the gated heading priors (every family measured, docs/method.md)",
+        source="issue 17: the cold start on KITTI 01 in rain slid 8 m across its trunk road in 3 s, "
+        "heading right, and was matched to a parallel service road; with odometry_slip_deg 3 and the gated "
+        "heading priors every family measured (docs/method.md, \"A wheeled vehicle does not slide\")",
     )
     odometry_slip_deg: float = param(
         3.0,
@@ -490,7 +490,7 @@ class FusionConfig:
         "a good odometry's own direction of motion is better than its integrated heading, a VO's slide in rain "
         "is not; 0: every step along its heading.",
         unit="deg", min=0.0, max=90.0,
-        source="issue 17, sessions 40-41: 3 keeps KITTI's good VIO as it was (the real drives slip in turns; "
+        source="issue 17: 3 keeps KITTI's good VIO as it was (the real drives slip in turns; "
         "at 0 KITTI 02 clear VIO s2 0.59 -> 2.46 m ATE; docs/method.md)",
     )
     planar_steps: PlanarSteps = param(
@@ -552,7 +552,7 @@ class FusionConfig:
         "max(1, lanes // 2) × lane_width_m / 2 to that side of the centre line instead of on it; one-way "
         "roads and junctions' join curves keep the centre line. Not the default: it helps the simulated "
         "drives and makes a real one worse (docs/method.md, \"The driving side\").",
-        source="issue 17, session 29: SUMO's vehicles drive 1.60 m right of OSM's centre line on two-way roads, "
+        source="issue 17: SUMO's vehicles drive 1.60 m right of OSM's centre line on two-way roads, "
         "KITTI's 0.4-0.9 m (medians); right: kidnapped after-error 7.42 -> 6.67 m, kitti-real 50.9 -> 56.7 m",
     )
     prior_spacing_m: float = param(
@@ -599,7 +599,7 @@ class FusionConfig:
         unit="deg",
         min=0.0,
         max=90.0,
-        source="issue 17, session 40: 3 is the best measured (2 / 3 / 5 on the 60-run set, GPS at the start only, "
+        source="issue 17: 3 is the best measured (2 / 3 / 5 on the 60-run set, GPS at the start only, "
         "with odometry_nonholonomic: ATE 4.60 / 3.85 / 4.05 m against 5.10 m without either); ungated it bends a good "
         "VIO to OSM's drawing (KITTI 02 clear VIO 0.59 -> 1.4 m), hence heading_prior_gate (docs/method.md)",
     )
@@ -612,7 +612,7 @@ class FusionConfig:
         "A heading prior only while the estimate's marginal yaw σ is at least this many heading_prior_sigma_deg: "
         "a good odometry's heading, known better than the road's, is not pulled to OSM's drawing (0: always).",
         unit="1", min=0.0, max=100.0,
-        source="issue 17, sessions 40-41: 1 keeps KITTI's good VIO as it was (every clear VIO within 0.08 m); "
+        source="issue 17: 1 keeps KITTI's good VIO as it was (every clear VIO within 0.08 m); "
         "alone it lost Helsinki heavy rain s5 (online RMSE 5.7 -> 155 m: the marginal σ of a VO in heavy rain is "
         "optimistic), hence heading_prior_open_factor; 0.3: kitti-full 3.05 m but 4 runs worse than the odometry",
     )
@@ -622,7 +622,7 @@ class FusionConfig:
         "the GPS window found the odometry worse than configured, so its own marginal yaw σ is optimistic "
         "(0: the gate alone decides).",
         unit="1", min=0.0, max=100.0,
-        source="issue 17, session 40: the learned factor reads 1.00 on KITTI's clear VIO and 3.00 on Helsinki "
+        source="issue 17: the learned factor reads 1.00 on KITTI's clear VIO and 3.00 on Helsinki "
         "heavy rain s5, whose heading priors the gate at 1 shut out (docs/method.md)",
     )
     heading_prior_max_deg: float = param(
@@ -649,7 +649,7 @@ class FusionConfig:
         "the same road (a way split in two, or drawn twice); 0: every other way is a rival (the gate as it was).",
         unit="m",
         min=0.0,
-        source="issue 17, session 33: on Helsinki, whose ways are split every few tens of metres, 705 of 950 frames "
+        source="issue 17: on Helsinki, whose ways are split every few tens of metres, 705 of 950 frames "
         "that wanted a prior were gated as ambiguous on a drive with no GPS, the rival the next way of the same road; "
         "1 m: kidnapped after-error 8.46 -> 7.93 m, 60-run set ATE 7.22 -> 7.01 m (docs/method.md)",
     )
@@ -839,7 +839,7 @@ class FusionConfig:
         "the engine's scale ×/÷ this (the lengths between turns decide it, as in a cold start with --scale-unknown), "
         "and a re-anchoring on its answer takes the answer's scale; 1: the engine's scale, fixed.",
         min=1.0, max=10.0,
-        source="issue 17, session 37: kitti-real TrianFlow 02 (monocular, scale 10-30% off) with map_relocalisation: "
+        source="issue 17: kitti-real TrianFlow 02 (monocular, scale 10-30% off) with map_relocalisation: "
                "seven lost searches at the engine's scale, each converged 81-99% sure, two of them 830-958 m off",
     )
     reloc_max_radius_m: float = param(2000.0, "Largest search region.", unit="m", min=1.0, max=100000.0,
@@ -848,10 +848,9 @@ class FusionConfig:
                                    "confirms it (no re-anchoring); farther, the estimate is re-anchored on it (the "
                                    "search's answer is a cluster of a few metres' spread, placed by the path's turns).",
                                    unit="m", min=0.0, max=10000.0,
-                                   source="issue 17: never move an estimate that was not lost; 15 -> 5 m (session 38): "
-                                          "kidnapped seeds 1-10 within 500 m 34 -> 36 of 40, after-error 7.51 -> "
-                                          "7.51 m, seeds 11-20 33 -> 33, 7.43 -> 7.27 m, none wrong "
-                                          "(docs/method.md)")
+                                   source="issue 17: never move an estimate that was not lost; 5 m against 15 m: "
+                                          "kidnapped seeds 1-10 within 500 m 36 against 34 of 40, seeds 11-20 "
+                                          "after-error 7.27 against 7.43 m, none wrong")
     reloc_after_gps_s: float = param(10.0, "With map_relocalisation: this long after the last GPS fix a search "
                                      "around the estimate checks where GPS left it; while fixes come more often, "
                                      "GPS places the estimate and no search runs (0: searches regardless of GPS).",
@@ -898,7 +897,7 @@ class FusionConfig:
                                         "many times worse (RMS), the shift itself fits within reloc_register_rms_m "
                                         "and it is longer than reloc_register_separation_m (0: off; a search as "
                                         "before).", unit="1", min=0.0, max=100.0,
-                                        source="issue 17, session 30: the fix windows of the kidnapped seeds 1-10 "
+                                        source="issue 17: the fix windows of the kidnapped seeds 1-10 "
                                         "(offline, mapfusion.register): the 19 of 20 biased windows found within "
                                         "3.4 m of their bias had ratios 1.35-3.38, the one found 246 m off 1.04")
     reloc_register_on_roads: bool = param(
@@ -906,7 +905,7 @@ class FusionConfig:
         "Register GPS's last fixes on the roads at its silence even when the estimate kept to the roads (the "
         "reloc_gps_fit_min test): a window biased along its streets, or onto parallel ones, leaves the estimate on "
         "roads too; a decisive shift needs the fixes where they are to fit reloc_register_ratio times worse.",
-        source="issue 17, session 31: kidnapped GPS bias Helsinki s8, 111 m off along its roads, fit 100%: no "
+        source="issue 17: kidnapped GPS bias Helsinki s8, 111 m off along its roads, fit 100%: no "
                "registration, found by the lost search 616 m on; offline the registration takes it within 2.2 m "
                "(ratio 1.34), and on 20 unbiased windows it is decisive on none; kidnapped seeds 1-10 within 500 m "
                "36 -> 37 of 40, the never-kidnapped drives unchanged",
@@ -915,13 +914,13 @@ class FusionConfig:
                                           "last one, once per last fix: soon, for the odometry carries the estimate "
                                           "from the last fix to the re-anchoring (a VO's heading wanders a few "
                                           "degrees in 10 s: 26 m off at 25 m/s when measured).", unit="s", min=0.0,
-                                          max=3600.0, source="issue 17, session 30: kidnapped GPS bias Kotka s7")
+                                          max=3600.0, source="issue 17: kidnapped GPS bias Kotka s7")
     reloc_register_place_m: float = param(150.0, "A decisive registration places the odometry on the last fixes, "
                                           "shifted, by a rigid fit (as a GPS re-localisation does): those back from "
                                           "the last one to the first that lies this far from it in a straight line "
                                           "(a longer stretch bends with the VO's heading wander; a shorter one, or "
                                           "a standstill, leaves the heading undetermined).", unit="m", min=1.0,
-                                          max=100000.0, source="issue 17, session 30: kidnapped GPS bias Kotka s7 "
+                                          max=100000.0, source="issue 17: kidnapped GPS bias Kotka s7 "
                                           "(25 m/s), 2 s after the last fix 7.1 m off with 10 s of fixes, 10.7 m with "
                                           "60 s; Helsinki s9, 10 s of fixes at a standstill turned the estimate 138°")
     reloc_register_m: float = param(1000.0, "Length of the fixes' path registered on the roads (reloc_register_ratio),"
@@ -944,7 +943,7 @@ class FusionConfig:
         "(every fifth frame matched within half its road's width plus a lane, heading within prior_max_angle_deg) "
         "would fall below this fraction of its share as it is: an estimate the map's priors kept on its roads is not "
         "swung off them about its end by the answer's heading (0: always moved, as before).", min=0.0, max=1.0,
-        source="issue 17 (session 38): kidnapped VO jump Kotka s11, a re-anchoring turned 1,353 m of path from 68% "
+        source="issue 17: kidnapped VO jump Kotka s11, a re-anchoring turned 1,353 m of path from 68% "
                "on the roads to 13% and its smoothed RMSE 18.7 -> 104.5 m; good mends measured 35-64% against 57-83% "
                "(refused at ratio 1, docs/method.md)")
     reloc_particles_per_m: float = param(10.0, "Particles per metre of road (both directions) in the search region, "
@@ -992,7 +991,7 @@ class FusionConfig:
                                      "answer is weighed again at each of its steps and re-anchors the estimate once "
                                      "the rival mass has gone, for at most reloc_watch_m more driving (false: the "
                                      "search ends with the answer held back).",
-                                     source="issue 17, session 33: kidnapped VO jump Helsinki s9, an answer 34 m "
+                                     source="issue 17: kidnapped VO jump Helsinki s9, an answer 34 m "
                                      "from an estimate 31 m off held back once (5% at the estimate), drifted to 145 m "
                                      "before the next search found it. Off by measurement: seeds 1-10 within 500 m 36 "
                                      "-> 38 of 40, but VO jump Kotka s24, a good estimate (2.96 m), was moved 124 m "
@@ -1022,7 +1021,7 @@ class FusionConfig:
         "of that step's σ (reloc_sigma_m + outage_step_fraction × its length): a vehicle may speed up in the gap, "
         "and the carried step assumes the speeds at its ends; 0: the carried step's length alone.",
         min=0.0, max=10.0,
-        source="issue 17, session 37: rain-tunnel Andorra vo s2 drove 27 m/s in a 106 s tunnel gap carried at "
+        source="issue 17: rain-tunnel Andorra vo s2 drove 27 m/s in a 106 s tunnel gap carried at "
                "19-25 m/s; its search's 2,612 m region ended 300 m short of the vehicle and converged on a look-alike "
                "860 m off",
     )
@@ -1164,7 +1163,7 @@ class FusionConfig:
                                      "road_fix_agree_m from an estimate whose last reloc_gps_fit_m lay at least "
                                      "reloc_gps_fit_min on a road — a path that keeps to the roads is not moved to a "
                                      "look-alike the particles settled on far away (a lost one leaves the roads).",
-                                     source="issue 17, session 30: kidnapped GPS bias Helsinki s2 and s30, good "
+                                     source="issue 17: kidnapped GPS bias Helsinki s2 and s30, good "
                                      "estimates moved 190-460 m by road fixes; seeds 1-10 / 11-20 ATE 40.38 / 50.33 "
                                      "-> 37.31 / 50.30 m (with reloc_register_ratio)")
     road_fix_near_only: bool = param(
@@ -1173,7 +1172,7 @@ class FusionConfig:
         "estimate far is a re-localisation, and the search makes those with its own checks (a converged posterior, "
         "no rival left at the estimate); road fixes keep a tracked estimate on its road. Measured, not the default: "
         "on rain-tunnel the far fixes bring back estimates no search was begun for.",
-        source="issue 17, session 31: kidnapped VO jump Helsinki s1, an estimate 9 m off moved 150-210 m by road "
+        source="issue 17: kidnapped VO jump Helsinki s1, an estimate 9 m off moved 150-210 m by road "
                "particles restarted 218 m around it that settled on a look-alike (47.6 -> 5.0 m); rain-tunnel with "
                "GPS at the start only, Andorra vo s3 13.0 -> 39.4 m, vio s1 11.8 -> 15.4 m, vio s4 13.5 -> 17.0 m",
     )

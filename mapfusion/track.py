@@ -424,7 +424,7 @@ def _slide(f: StepFloats, lever_m: float) -> tuple[float, float]:
 SLIDE_FRAMES = 10
 #: ... and over at least this much driving (m): at a crawl a step's direction is its noise. KITTI 00's own poses move
 #: 10 degrees across their heading for a second at 2.4 m/s in a slow turn (233 s); at 2 m the steps along the heading
-#: took them 0.454 -> 0.489 m ATE with the map (session 41).
+#: took them 0.454 -> 0.489 m ATE with the map.
 SLIDE_MIN_M = 3.0
 #: ... turning at most this much (rad): in a sharp turn the frame's swing (a lever arm a few decimetres off) and the
 #: tyres' own slip are degrees.

@@ -33,12 +33,12 @@ def test_drives_are_1_5_to_3_5_km(table):
         assert all(1.5 <= km <= 3.5 for km in r["km"]), r["km"]
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="measured 2026-11-24 (planar steps on the local horizontal): mean of the "
-                   "localised runs 6.78 m, median 6.53 m, 1 of 8 de-localised (Helsinki seed 1, 39.7 m; 2026-11-23, "
-                   "vo fitted to the real stereo VO: 7.15 m, 6.42 m, 1 of 8). The paper's "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="mean of the localised runs 6.78 m, median 6.53 m, 1 of 8 "
+                   "de-localised (Helsinki seed 1, 39.7 m; pytest scenarios/test_calibration.py). The paper's "
                    "1–5 m is DROID-SLAM's (windowed bundle adjustment); the development set's stereo VO is "
                    "frame-to-frame CVO, whose own ATE on the KITTI drives is 3.3–61 m after alignment: a VO with "
-                   "its rotation noise and drift cannot also hold 1–5 m on 2–3.3 km drives")
+                   "its rotation noise and drift cannot also hold 1–5 m on 2–3.3 km drives (docs/method.md, "
+                   "\"Calibration against the paper's odometry-only figures\")")
 def test_clear_vo_1_to_5_m(table):
     r = table[("clear", "vo")]
     assert r["delocalized"] == 0
@@ -51,10 +51,9 @@ def test_clear_vio_1_to_6_m(table):
     assert 1.0 <= r["mean_ate_m"] <= 6.0
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="measured 2026-11-24 (planar steps on the local horizontal): median 27.4 m, "
-                   "5 of 8 de-localised (2026-11-23: 26.4 m, 5 of 8; before the VO fit: median 7.6 m). Rain multiplies "
-                   "the fitted clear VO's noise (already 7 m on these drives, see the clear claim), so rain lands above "
-                   "the paper's 8–20 m")
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="median 27.4 m, 5 of 8 de-localised (pytest "
+                   "scenarios/test_calibration.py). Rain multiplies the fitted clear VO's noise (already 7 m on "
+                   "these drives, see the clear claim), so rain lands above the paper's 8–20 m")
 def test_rain_vo_8_to_20_m(table):
     r = table[("rain", "vo")]
     assert 8.0 <= r["median_ate_m"] <= 20.0

@@ -114,8 +114,7 @@ def test_rain_reduces_mean_ate_by_40_percent(request):
 
 @family("heavy-rain")
 def test_heavy_rain_reduces_mean_ate_by_40_percent(request):
-    """Met since 2026-11-26 (session 36, the odometry σ learned from the GPS window, two-sided, the default): 46%,
-    6.58 → 3.54 m; 52%, 5.71 → 2.72 m since session 41 (steps along the heading and heading priors, the default). (Before: 39–41% depending on the machine, 8.35 → 4.95 m, a non-strict xfail.)"""
+    """52%, 5.71 → 2.72 m (pytest scenarios/ -k heavy_rain)."""
     assert _reduction(_ok(request, "heavy-rain")) >= 0.40
 
 
@@ -188,38 +187,19 @@ def _kidnapped(request):
 @family("kidnapped")
 def test_kidnapped_runs_are_relocalised_within_500_m(request):
     """Issue 17: after the kidnap (a biased fix window, or a VO that re-initialises 30–300 m off) and with no
-    GPS after it, at least 90% of the runs are found again by the map within 500 m of driving. (Passing since
-    2026-11-26, session 31: 8 of 8 here; seeds 1-10 37 of 40, seeds 1-30 106 of 120, see docs/method.md.)"""
+    GPS after it, at least 90% of the runs are found again by the map within 500 m of driving: 8 of 8 here; seeds
+    1–10 37 of 40 (mapfusion run k.toml, docs/method.md "Found again without GPS")."""
     rows = _kidnapped(request)
     found = [r for r in rows if r["relocalised"] and r["relocalisation_m"] <= 500.0]
     assert len(found) >= 0.9 * len(rows), sorted((r["scenario"], r["relocalisation_m"]) for r in rows)
 
 
 @family("kidnapped")
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="measured 2026-11-25 (session 26): mean online error after re-localisation "
-                   "6.9 m over this family (6.2–8.0 m a run: the engine tracks after the search as after a GPS "
-                   "initialisation, its along-road error 5–12 m between junctions); no run here re-anchored wrong; "
-                   "over seeds 1–30 7 of 120 runs wrong, the longest 1,238 m (a wrong convergence the watch does not "
-                   "see is undone only by the next lost event); 2026-11-26 (session 29): seeds 1-10 7.42 m, and "
-                   "the same 20 drives never kidnapped 8.1 m after their GPS ends, so the 5 m is the tracking's; "
-                   "2026-11-26 (session 30): this family 7.0 m (3.6-10.6 m a run), none wrong; seeds 1-10 7.88 m, "
-                   "seeds 1-30 4 of 120 runs wrong, the longest 1,238 m; 2026-11-26 (session 31, the gap's guess spanning "
-                   "the carried step): this family 9.3 m (3.6-26.6 m a run: VO jump Helsinki s1, never knocked off, "
-                   "moved 197 m for 50 s by road fixes on a look-alike, see road_fix_near_only), none re-anchored "
-                   "wrong; seeds 1-10 8.46 m, seeds 1-30 3 of 120 runs wrong for more than 200 m, the longest "
-                   "1,690 m; 2026-11-26 (session 32, a watched jump held back weighed again): this family "
-                   "unchanged; seeds 1-30 2 of 120 wrong for more than 200 m, 229 and 210 m; 2026-11-26 (session 33, "
-                   "split ways no rivals for the ambiguity gate): this family 6.6 m (3.6-9.2 m a run), none wrong; "
-                   "seeds 1-10 7.93 m, seeds 1-30 1 of 120 wrong for more than 200 m (210 m); 2026-11-26 (session 36, the "
-                   "odometry σ learned from the GPS window, two-sided, the default): this family 6.7 m (3.6-9.2 m a "
-                   "run), none wrong; seeds 1-10 7.57 m, seeds 11-20 7.37 m, none wrong; with outage_speed_after_s (1 s, the "
-                   "default since session 36): this family 6.3 m (3.6-9.2 m a run), none wrong; 2026-11-27 (session "
-                   "38, reloc_confirm_m 15 -> 5 m): this family 6.6 m (3.6-9.2 m a run), none wrong; seeds 1-10 "
-                   "7.51 m, seeds 11-20 7.27 m, none wrong; 2026-11-27 (session 41, steps along the heading and "
-                   "heading priors, the default): this family 8 of 8 within 500 m, 5.85 m (3.1-9.2 m a run), none "
-                   "wrong; seeds 1-10 7.26 m, seeds 11-20 7.30 m, none wrong; 2026-11-28 (session 46, "
-                   "mapfusion.harness.bounds): seeds 1-10 re-anchored on the true pose where the after-error starts "
-                   "6.87 m, never kidnapped 7.67 m: no re-localisation reaches 5 m on this VO's tracking")
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="mean online error after re-localisation 5.85 m over this "
+                   "family (3.1-9.2 m a run), none re-anchored wrong; seeds 1-10 7.26 m (mapfusion run k.toml). The "
+                   "same runs re-anchored on the true pose where the after-error starts give 6.87 m and never "
+                   "kidnapped 7.67 m (python -m mapfusion.harness.bounds kidnapped k.toml): no re-localisation "
+                   "reaches 5 m on this VO's tracking without GPS, whose along-road error is 5-12 m between junctions")
 def test_kidnapped_runs_are_within_5_m_after_relocalisation_and_never_stay_wrong(request):
     """Issue 17: after re-localisation the mean online error is at most 5 m; no wrong convergence stays
     wrong for more than 200 m."""

@@ -14,7 +14,7 @@ keeps everything else, so what it measures is the tracking alone, the most any r
   of a few metres around the true start is a search that cannot go wrong.
 
 ``python -m mapfusion.harness.bounds kidnapped FAMILY.toml`` and ``python -m mapfusion.harness.bounds cold-start``
-print the tables (docs/method.md, issue 17's table, session 46).
+print the tables (docs/method.md, "Found again without GPS").
 """
 
 from __future__ import annotations

@@ -89,7 +89,7 @@ def test_a_parallel_road_still_gates_the_prior(split_road):
         assert m is not None and factor is None and assoc.counters.priors_gated == 1
 
 
-# ---------------------------------------------------------------- heading priors (issue 17, session 40)
+# ---------------------------------------------------------------- heading priors (issue 17)
 @pytest.fixture(scope="module")
 def east_road(tmp_path_factory) -> RoadMap:
     """A straight one-lane road 400 m long heading east, centred on the map's origin."""

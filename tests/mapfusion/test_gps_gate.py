@@ -298,7 +298,7 @@ def _collapse_drive(road: RoadMap, rescale: bool, factor: float = 8.0, **cfg):
 
 @pytest.mark.parametrize("rescale, heading_priors", [
     pytest.param(True, True, marks=pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
-        "measured 2026-11-27 (session 41, heading priors on by default): the track runs re-scale 1.00 -> 7.30 -> "
+        "with the heading priors (the default) the track runs re-scale 1.00 -> 7.30 -> "
         "5.29 -> 7.72 and the estimate ends 79.8 m behind (heading priors off: 6.96 -> 7.84, then 8.00 from the "
         "fit, 0.3 m). A run's ratio is the GPS chord over the online estimate's, and the smoother's update every "
         "5 frames moves the online estimate inside the run (13 m forwards in one frame of the second run): the "

@@ -63,7 +63,7 @@ LOOK_ALIKES = [(3394, 245.91934608966346, 5.916192639472387, 461.46702761077165)
                (4328, 162.8999899161845, 4.221613447282325, 861.6348164998618), (126, 50.0, 0.0, 300.0)]
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="measured 2026-11-26 (session 30): on 300 random Helsinki drives shifted "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="on 300 random Helsinki drives shifted "
                    "50-250 m (2 m noise), 266 answers were decisive and 2 of them were look-alikes 54 and 213 m from "
                    "the truth, ratios 1.26 and 1.27 against the 1.25 required; hypothesis found a third (a 300 m "
                    "drive, 232 m off, ratio 1.31). The ratio of two RMS over a few dozen noisy points does not tell "

@@ -225,7 +225,7 @@ def test_the_compass_rule_turns_each_pose_by_its_share_of_the_heading_correction
         assert abs(p.x() - (10.0 * i + dx * i / n)) < 1e-9 and p.z() == 1.0
 
 
-# ---------------------------------------------------------------- odometry_nonholonomic (issue 17, session 40)
+# ---------------------------------------------------------------- odometry_nonholonomic (issue 17)
 @given(x=st.floats(-30.0, 30.0), y=st.floats(-30.0, 30.0), z=st.floats(-2.0, 2.0), yaw=st.floats(-1.5, 1.5))
 def test_a_step_along_its_heading_keeps_its_length_height_and_rotation(x, y, z, yaw):
     step = gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x, y, z))

@@ -251,7 +251,7 @@ def test_road_fixes_wait_while_a_search_runs(road):
     replay of the path under GPS); by default no road fix enters
     the graph while it runs (the fixes' particles start around the very estimate the search questions), and the
     fixes come once it has ended. With road_fix_while_searching they do come during the search. (Route 2: on
-    route 1 the search, seeded by the frame it begins at since 2026-11-25, no longer ends within the drive.
+    route 1 the search, seeded by the frame it begins at, does not end within the drive.
     With road_fix_near_only, not the default, the far fixes this test counts are refused either way.)"""
     drive = _wandering(road, 2)
     seen = {}
@@ -383,8 +383,8 @@ def test_a_start_weighs_each_particle_by_its_heading_against_the_estimates(road,
 
 
 def _any_way_walk(road, length_m: float, seed: int) -> np.ndarray:
-    """A drive over the graph that takes any exit at a vertex, one-way streets against their direction too (what
-    `mapfusion bench`'s drive did until 2026-11-28): a vehicle the map says may not be there, as where a one-way
+    """A drive over the graph that takes any exit at a vertex, one-way streets against their direction too (which
+    `mapfusion bench`'s drive must not do): a vehicle the map says may not be there, as where a one-way
     tag is wrong."""
     rng = np.random.default_rng(seed)
     at: dict[int, list[int]] = {}
@@ -403,7 +403,7 @@ def _any_way_walk(road, length_m: float, seed: int) -> np.ndarray:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="measured 2026-11-28 (session 48): a drive that goes the wrong way down a "
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="a drive that goes the wrong way down a "
                    "one-way street 2 km in (GPS for its first 1.2 km) with an odometry that does not drift: the road "
                    "particles cannot follow it, all of them go on along legal roads, their normalised posterior "
                    "stays confident (mass 1.0) on a place that moves away from the vehicle, and their fixes take "
