@@ -1,8 +1,8 @@
 """Do two revisions give the same results? (issue 21: speed-ups must leave every result unchanged)
 
 Simulates drives of six families once (with this checkout's simulator), then fuses each under both
-revisions' engines (a git worktree each, run in a fresh process) with four configurations — the
-defaults, centre-line and band priors, matching continuity — and compares every
+revisions' engines (a git worktree each, run in a fresh process) with three configurations — the
+defaults, centre-line and band priors — and compares every
 smoothed and online pose and every metric. Prints the largest difference; exits 1 if any exceeds 1e-9.
 
 Run from the repo root: python benchmarks/compare_results.py c5e51d6 [HEAD]   (MAPFUSION_DATA set)
@@ -42,7 +42,7 @@ def fuse(sims_path: Path, out: Path) -> None:
     from mapfusion.harness.pipeline import fuse_and_evaluate
 
     configs = {"default": {}, "centre": {"prior_target": PriorTarget.centre},
-               "band": {"prior_target": PriorTarget.band}, "continuity": {"match_continuity": True}}
+               "band": {"prior_target": PriorTarget.band}}
     res = {}
     for s in pickle.loads(sims_path.read_bytes()):
         s = dataclasses.replace(s, road=RoadMap.from_osm(s.sc.map))

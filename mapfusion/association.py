@@ -22,7 +22,7 @@ import gtsam
 import numpy as np
 
 from . import factors
-from .config import FusionConfig, PriorTarget, TrafficSide
+from .config import FusionConfig, PriorTarget
 from .counters import Counters
 from .geometry import on_line
 from .matcher import Match, lateral_bound_ok, map_pose, match, match_candidates
@@ -57,8 +57,6 @@ class MapAssociation:
         self.road = road
         self.cfg = cfg
         self.counters = counters
-        self.edge = -1  # the road edge the vehicle was last matched to
-        self._mask = np.zeros(len(road), dtype=bool)
         if cfg.use_map:
             _ = road.cells  # the map's cell index, built with the engine rather than inside its first frame
         self._robust = factors.robust_kernel(cfg)
@@ -73,8 +71,7 @@ class MapAssociation:
         self._fit_m = self._fit_on_m = 0.0
 
     def reset(self) -> None:
-        """Forget the last road (after a re-localisation)."""
-        self.edge = -1
+        """Forget what was watched (after a re-localisation)."""
         self._unexplained_m, self.lost = 0.0, False
 
     def take_became_lost(self) -> bool:
@@ -128,32 +125,10 @@ class MapAssociation:
         return self._unexplained_m
 
     def match(self, pred: gtsam.Pose3) -> Match | None:
-        """The best way-point for a predicted pose (with continuity: among the roads joined to the
-        last one, unless an unrestricted match is better by more than ``continuity_slack_m``)."""
-        cfg, road = self.cfg, self.road
-        x, y, yaw = pred.x(), pred.y(), pred.rotation().yaw()
-        if not (cfg.match_continuity and self.edge >= 0):
-            best = match(road, x, y, yaw, cfg.search_radius_m, cfg.angle_weight_m_per_deg)
-            if best is not None and best.edge >= 0:
-                self.edge = best.edge
-            return best
-        near = road.query_radius(x, y, cfg.search_radius_m)
-        best = match(road, x, y, yaw, cfg.search_radius_m, cfg.angle_weight_m_per_deg, candidates=near)
-        if best is None:
-            return None
-        neigh = road.neighbourhood(self.edge)
-        self._mask[neigh] = True  # a scratch mask: O(|neighbourhood| + |near|), no sorting
-        allowed = near[self._mask[near]]
-        self._mask[neigh] = False
-        m = match(road, x, y, yaw, cfg.search_radius_m, cfg.angle_weight_m_per_deg, candidates=allowed) \
-            if allowed.size else None
-        if m is not None and m.cost <= best.cost + cfg.continuity_slack_m:
-            best = m
-        else:
-            self.counters.match_fallbacks += 1
-        if best.edge >= 0:
-            self.edge = best.edge
-        return best
+        """The best way-point for a predicted pose (the paper's D = E + w·A)."""
+        cfg = self.cfg
+        return match(self.road, pred.x(), pred.y(), pred.rotation().yaw(), cfg.search_radius_m,
+                     cfg.angle_weight_m_per_deg)
 
     def ambiguous(self, m: Match, pred: gtsam.Pose3) -> bool:
         """Another way's best D lies within ``prior_ambiguity_m`` of the match's."""
@@ -200,13 +175,9 @@ class MapAssociation:
             return None, None
         self.counters.matches += 1
         width = m.lanes * self.cfg.lane_width_m
-        side = self.side_m(m)
-        if self._since_prior_m < self.cfg.prior_spacing_m or lateral_bound_ok(m, pred.matrix(), width, side):
+        if self._since_prior_m < self.cfg.prior_spacing_m or lateral_bound_ok(m, pred.matrix(), width):
             return m, None  # (most frames: on the road; R_t is built only when a prior may follow)
         r_pose, lateral = map_pose(m, pred)
-        if side:
-            r_pose = _across(r_pose, side)  # (the band's centre: the driving side's lane, not the centre line)
-            lateral = abs(r_pose.transformTo(pred.translation())[1])
         if lateral <= width:
             return m, None
         if self.gated(m, pred, lateral, width, pos_sigma_m):
@@ -216,14 +187,14 @@ class MapAssociation:
             # the map says the vehicle is on the road, not on its centre line: the band's
             # information given the estimate's own lateral σ (and the map's)
             sigma = max(math.hypot(lat_sigma_m, self.cfg.prior_map_sigma_m), 0.05)
-            upd = factors.band_update(m.signed_lateral_m - side, sigma, self.cfg.prior_band_fraction * width)
+            upd = factors.band_update(m.signed_lateral_m, sigma, self.cfg.prior_band_fraction * width)
             if upd is None:
                 return m, None
             r_pose = _across(r_pose, upd[0])
             noise = factors.band_prior_noise(self.cfg, max(upd[1], BAND_SIGMA_FLOOR_M), self._robust)
         else:
             if self.cfg.prior_target is PriorTarget.edge:
-                r_pose = _across(r_pose, math.copysign(self.cfg.prior_band_fraction * width, m.signed_lateral_m - side))
+                r_pose = _across(r_pose, math.copysign(self.cfg.prior_band_fraction * width, m.signed_lateral_m))
             v_lon, v_lat = step.x() / dt_s, step.y() / dt_s
             yaw = pred.rotation().yaw()
             motion_dir = yaw + math.atan2(step.y(), step.x()) if step.translation()[:2].any() else yaw
@@ -264,16 +235,6 @@ class MapAssociation:
             return False
         d = np.remainder(road.yaw_rad[a:b] - road.yaw_rad.item(i) + math.pi, 2.0 * math.pi) - math.pi
         return bool(np.max(np.abs(d)) <= math.radians(STRAIGHT_DEG))
-
-    def side_m(self, m: Match) -> float:
-        """Signed offset (m, left of the direction of travel positive) of the lane the vehicle keeps to from the
-        matched road's centre line (``traffic_side``): on a two-way road the middle of its direction's
-        max(1, lanes // 2) lanes, elsewhere 0."""
-        side = self.cfg.traffic_side
-        if side is TrafficSide.none or m.is_join or self.road.two_way_sign.item(m.index) > 0:
-            return 0.0
-        half_m = max(1, m.lanes // 2) * 0.5 * self.cfg.lane_width_m
-        return half_m if side is TrafficSide.left else -half_m
 
     def odometry_prior(self, k: int, pred: gtsam.Pose3, pos_sigma_m: float) -> gtsam.PriorFactorPose3 | None:
         """Paper IV.B: when the estimate's positional σ exceeds the width of the road it is on

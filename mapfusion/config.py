@@ -240,14 +240,6 @@ class PriorTarget(str, enum.Enum):
     band = "band"  # the band |lateral| ≤ road width, combined with the estimate's own σ
 
 
-class TrafficSide(str, enum.Enum):
-    """Which side of a two-way road traffic keeps to (issue 17: where the map prior's band is centred)."""
-
-    right = "right"  # continental Europe, the Americas, most of Asia
-    left = "left"  # the UK, Ireland, Japan, Australia, India, …
-    none = "none"  # the band centred on the centre line (the default)
-
-
 class RobustKernel(str, enum.Enum):
     """M-estimator on the map prior, so that a wrong match cannot drag the estimate."""
 
@@ -275,6 +267,22 @@ class FusionConfig:
                                                                   "jump_penalty", "beam", "min_posterior", "step_m")},
         "hmm_lost_cost_m": "is renamed lost_cost_m",
         "hmm_lost_after_m": "is renamed lost_after_m",
+        "match_continuity": "was removed (measured worse: once on a wrong road it kept the estimate there)",
+        "continuity_slack_m": "was removed with match_continuity",
+        "scale_sigma_honest": "was removed (measured worse on the held-out 60-run set, 8.38 -> 9.55 m)",
+        "reloc_reweigh_held": "was removed (measured: it re-anchored a good estimate 124 m onto a look-alike on the "
+                              "kidnapped seeds 21-30)",
+        **{k: "was removed (measured worse: kidnapped seeds 11-20 after-error 9.71 -> 15.71 m, three rain-tunnel "
+              "runs worse)" for k in ("reloc_reverse_deg", "reloc_reverse_reach_m", "road_fix_reverse_deg")},
+        "road_fix_steady_start": "was removed (measured worse: the 60-run set 7.21 -> 8.10 m); a start after a "
+                                 "re-anchoring always waits for a steady heading",
+        "road_fix_near_only": "was removed (measured worse on rain-tunnel with GPS at the start only: three runs "
+                              "worse, none better)",
+        "road_fix_while_searching": "was removed: the road fixes always wait while a map search runs",
+        "reloc_lost_scale_factor": "was removed (measured worse: rain-tunnel with GPS at the start only 62.53 -> "
+                                   "64.27 m; kitti-real with the search 44.39 m against 38.61 m without it)",
+        "traffic_side": "was removed (measured worse: a real TrianFlow drive 23.8 -> 82.5 m, worse than without the "
+                        "map, and rain 7.83 -> 9.93 m)",
     }
 
     lane_width_m: float = param(
@@ -545,16 +553,6 @@ class FusionConfig:
         exclusive_min=True,
         source="issue 16; by measurement",
     )
-    traffic_side: TrafficSide = param(
-        TrafficSide.none,
-        "none | right | left. On a two-way road (OSM's lanes count both directions) the vehicle drives in "
-        "its direction's half: with right or left the prior's band (and the centre target) is centred "
-        "max(1, lanes // 2) × lane_width_m / 2 to that side of the centre line instead of on it; one-way "
-        "roads and junctions' join curves keep the centre line. Not the default: it helps the simulated "
-        "drives and makes a real one worse (docs/method.md, \"The driving side\").",
-        source="issue 17: SUMO's vehicles drive 1.60 m right of OSM's centre line on two-way roads, "
-        "KITTI's 0.4-0.9 m (medians); right: kidnapped after-error 7.42 -> 6.67 m, kitti-real 50.9 -> 56.7 m",
-    )
     prior_spacing_m: float = param(
         10.0,
         "At most one map prior per this much driving: priors from the same stretch of road share "
@@ -573,12 +571,6 @@ class FusionConfig:
         min=0.0,
         exclusive_min=True,
         source="Huber's 95%-efficiency constant",
-    )
-    match_continuity: bool = param(
-        False,
-        "Prefer the current road and the roads the graph joins to it.",
-        source="DESIGN item 7; off by measurement (issue 6: once the estimate is on a "
-        "wrong road, continuity keeps it there)",
     )
     prior_max_angle_deg: float = param(
         30.0,
@@ -666,12 +658,6 @@ class FusionConfig:
         "Allow map priors from way-points on the rounded joins inside junctions.",
         source="DESIGN item 7; by measurement",
     )
-    continuity_slack_m: float = param(
-        5.0,
-        "An unrestricted match wins over the continuity match only when its D is lower by more than this.",
-        unit="m",
-        min=0.0,
-    )
     odometry_priors: bool = param(
         True,
         "Add the odometry estimate as a prior when the marginal positional σ exceeds the road width.",
@@ -738,14 +724,6 @@ class FusionConfig:
         min=0.0,
         source="issue 6 (rain: fits 3-5% off where the median was within 0.1%); by measurement",
     )
-    scale_sigma_honest: bool = param(
-        False,
-        "The scale's σ counts the independent windows (not the overlapping samples) and a fit's σ "
-        "includes its residual's bend of the path (the odometry's correlated drift); false: the "
-        "σ of independent samples, as before issue 16.",
-        source="issue 16 item 3 (a mono VO's scale 1.1089 ± 0.0004 where the truth was 1.058); off by "
-        "measurement: kitti-real 92.2 → 90.1 m, but the held-out 60-run set 8.38 → 9.55 m",
-    )
     refine_scale: bool = param(
         True,
         "Keep refining the scale while GPS fixes arrive after initialisation.",
@@ -801,20 +779,6 @@ class FusionConfig:
                                          "road_fix_uturn_probability instead.", min=0.0, max=10.0,
                                          source="issue 17: SUMO's vehicles turn back at junctions; kidnapped "
                                          "runs re-anchored wrong 13 -> 7 of 120 (seeds 1-30)")
-    reloc_reverse_deg: float = param(
-        0.0,
-        "A step whose odometry chord points more than this away from any of the four chords before it (some 20 m) "
-        "is a turn back: half of the search's particles, drawn at random, turn back there (on a two-way road in "
-        "place, on a one-way road onto the nearest road that may be driven the other way within "
-        "reloc_reverse_reach_m: the other carriageway); 0: off (turns back only at vertices, "
-        "reloc_uturn_at_vertex). The road fixes' particles take road_fix_reverse_deg.",
-        unit="deg", min=0.0, max=180.0,
-        source="issue 17: SUMO's vehicles turn back mid-road and across dual carriageways about once every 2 km "
-               "(40 kidnapped drives, seeds 1-10: 71 turns back); VO jump Helsinki s11 lost the right cluster at one")
-    reloc_reverse_reach_m: float = param(30.0, "How far from a particle on a one-way road a turn back "
-                                         "(reloc_reverse_deg) looks for a road that may be driven the other way.",
-                                         unit="m", min=0.0, max=1000.0,
-                                         source="issue 17: dual carriageways' centre lines 5-25 m apart")
     reloc_offset_max_deg: float = param(180.0, "Largest heading innovation a particle's offset follows in one step "
                                         "(180: any; the road fixes' particles take road_fix_offset_max_deg).",
                                         unit="deg", min=0.0, max=180.0, source="issue 16")
@@ -833,15 +797,6 @@ class FusionConfig:
     reloc_radius_per_m: float = param(1.0, "Growth of that radius per metre driven since a road last explained "
                                       "the estimate.", unit="m/m", min=0.0, max=10.0,
                                       source="issue 17: the vehicle is at most that far from there")
-    reloc_lost_scale_factor: float = param(
-        1.0,
-        "A search begun because the estimate is lost spreads its particles' odometry scales log-uniformly within "
-        "the engine's scale ×/÷ this (the lengths between turns decide it, as in a cold start with --scale-unknown), "
-        "and a re-anchoring on its answer takes the answer's scale; 1: the engine's scale, fixed.",
-        min=1.0, max=10.0,
-        source="issue 17: kitti-real TrianFlow 02 (monocular, scale 10-30% off) with map_relocalisation: "
-               "seven lost searches at the engine's scale, each converged 81-99% sure, two of them 830-958 m off",
-    )
     reloc_max_radius_m: float = param(2000.0, "Largest search region.", unit="m", min=1.0, max=100000.0,
                                       source="issue 17: 2 km in a city at 10 Hz on one core")
     reloc_confirm_m: float = param(5.0, "A re-localisation within this distance of the current estimate only "
@@ -987,15 +942,6 @@ class FusionConfig:
         "such a correction was never made (false: counted in full).",
         source="issue 17 (kidnapped VO jumps: steps carried across the gap 15–60 m along the road stayed so)",
     )
-    reloc_reweigh_held: bool = param(False, "A search whose converged answer reloc_rival_mass held back goes on: its "
-                                     "answer is weighed again at each of its steps and re-anchors the estimate once "
-                                     "the rival mass has gone, for at most reloc_watch_m more driving (false: the "
-                                     "search ends with the answer held back).",
-                                     source="issue 17: kidnapped VO jump Helsinki s9, an answer 34 m "
-                                     "from an estimate 31 m off held back once (5% at the estimate), drifted to 145 m "
-                                     "before the next search found it. Off by measurement: seeds 1-10 within 500 m 36 "
-                                     "-> 38 of 40, but VO jump Kotka s24, a good estimate (2.96 m), was moved 124 m "
-                                     "onto a look-alike (ATE 114.6 m)")
     reloc_give_up_m: float = param(1500.0, "A search not converged after this much driving starts again around the "
                                    "estimate with twice the radius.", unit="m", min=10.0, max=1000000.0,
                                    source="issue 17")
@@ -1141,24 +1087,10 @@ class FusionConfig:
                                               "junctions), and particles that cannot are all wrong after it.",
                                               min=0.0, max=1.0, source="issue 16: Helsinki seed 5 turns back at "
                                               "253 s")
-    road_fix_reverse_deg: float = param(0.0, "reloc_reverse_deg for the road fixes' particles (turns back told from "
-                                        "the odometry, besides road_fix_uturn_probability); 0: off.", unit="deg",
-                                        min=0.0, max=180.0, source="issue 17")
     road_fix_scale_gain: float = param(0.02, "Each road fix moves the engine's odometry scale this fraction of the way "
                                        "(in log) to the fix's cluster's scale: the map keeps observing the scale "
                                        "after GPS ends (0: the scale GPS measured stays).", min=0.0, max=1.0,
                                        source="issue 16 item 3")
-    road_fix_steady_start: bool = param(False, "Every start of the particles waits until the odometry's heading "
-                                        "turned by at most road_fix_offset_max_deg over its last reloc_step_m "
-                                        "(false: only the start after a re-anchoring waits). They start heading "
-                                        "along their roads, and mid-turn the right ones would carry the rest of the "
-                                        "turn in their offsets; a search converges, and re-anchors, at a turn.",
-                                        source="issue 17: a kidnapped run re-anchored at a junction; every start: "
-                                        "60-run set 7.21 -> 8.10 m")
-    road_fix_while_searching: bool = param(False, "Road fixes go on while a map_relocalisation search runs (false: "
-                                           "they wait for its answer: the search questions the very estimate they "
-                                           "start around, and a re-anchoring restarts them).", source="issue 17: "
-                                           "kidnapped runs")
     road_fix_trust_fit: bool = param(True, "With map_relocalisation (which measures it): no road fix farther than "
                                      "road_fix_agree_m from an estimate whose last reloc_gps_fit_m lay at least "
                                      "reloc_gps_fit_min on a road — a path that keeps to the roads is not moved to a "
@@ -1166,16 +1098,6 @@ class FusionConfig:
                                      source="issue 17: kidnapped GPS bias Helsinki s2 and s30, good "
                                      "estimates moved 190-460 m by road fixes; seeds 1-10 / 11-20 ATE 40.38 / 50.33 "
                                      "-> 37.31 / 50.30 m (with reloc_register_ratio)")
-    road_fix_near_only: bool = param(
-        False,
-        "With map_relocalisation: no road fix farther than road_fix_agree_m from the estimate at all. Moving an "
-        "estimate far is a re-localisation, and the search makes those with its own checks (a converged posterior, "
-        "no rival left at the estimate); road fixes keep a tracked estimate on its road. Measured, not the default: "
-        "on rain-tunnel the far fixes bring back estimates no search was begun for.",
-        source="issue 17: kidnapped VO jump Helsinki s1, an estimate 9 m off moved 150-210 m by road "
-               "particles restarted 218 m around it that settled on a look-alike (47.6 -> 5.0 m); rain-tunnel with "
-               "GPS at the start only, Andorra vo s3 13.0 -> 39.4 m, vio s1 11.8 -> 15.4 m, vio s4 13.5 -> 17.0 m",
-    )
     road_fix_drift: float = param(0.1, "What the odometry may drift, as a fraction of the distance driven: the "
                                   "gate's allowance since its last answer, and a restart's radius (× 3) since the "
                                   "last fix (GPS's or a road fix).", min=0.0,
@@ -1555,7 +1477,6 @@ class FusionConfig:
             state=StateModel.pose3,
             prior_mode=PriorMode.paper,
             robust_kernel=RobustKernel.none,
-            match_continuity=False,
             prior_max_angle_deg=180.0,
             prior_ambiguity_m=0.0,
             prior_on_joins=True,

@@ -20,7 +20,6 @@ class Counters:
     map_priors: int = 0
     priors_gated: int = 0
     matches: int = 0
-    match_fallbacks: int = 0
     odometry_priors: int = 0
     recoveries: int = 0
     gps_relocalisations: int = 0

@@ -75,7 +75,6 @@ class ScaleEstimator:
         self._odo_t: list[float] = []
         self._odo_p: list[np.ndarray] = []
         self.samples: list[float] = []
-        self.spans: list[tuple[float, float]] = []  # each sample's window (GPS times, s)
 
     def add_odometry(self, t: float, position_odo: np.ndarray) -> None:
         self._odo_t.append(float(t))
@@ -131,7 +130,6 @@ class ScaleEstimator:
                 if d_vo > 1e-6 and t_vo > 0 and t1 > t0:
                     new = scale_sample(d_gps, t1 - t0, d_vo, t_vo, self.cfg.scale_formula)
                     self.samples.append(new)
-                    self.spans.append((t0, t1))
             self._fixes.popleft()  # slide the window by one fix
         return new
 
@@ -139,27 +137,14 @@ class ScaleEstimator:
     def ready(self) -> bool:
         return len(self.samples) >= self.cfg.scale_samples
 
-    def independent_windows(self, last: int | None = None) -> float:
-        """How many non-overlapping windows the samples span (at least 1): windows slide by one fix,
-        so successive samples share most of their odometry and its drift, and are not independent."""
-        spans = np.asarray(self.spans if last is None else self.spans[-last:], dtype=float).reshape(-1, 2)
-        if len(spans) == 0:
-            return 1.0
-        width = float(np.median(spans[:, 1] - spans[:, 0]))
-        covered = float(spans[:, 1].max() - spans[:, 0].min())
-        return max(1.0, covered / width) if width > 0 else 1.0
-
     def estimate(self, last: int | None = None) -> ScaleEstimate | None:
-        """Median of the samples (of the last ``last`` if given) and its standard error, counting the
-        independent windows rather than the samples (issue 16: 50 overlapping windows of a drifting VO
-        gave a σ a hundred times too small)."""
+        """Median of the samples (of the last ``last`` if given) and its standard error over the samples."""
         s = np.asarray(self.samples if last is None else self.samples[-last:])
         if len(s) == 0:
             return None
         med = float(np.median(s))
         mad = float(np.median(np.abs(s - med)))
-        n = min(len(s), self.independent_windows(last)) if self.cfg.scale_sigma_honest else len(s)
-        sigma = 1.4826 * mad * 1.2533 / math.sqrt(n)  # σ of a median ≈ 1.2533 σ/√n
+        sigma = 1.4826 * mad * 1.2533 / math.sqrt(len(s))  # σ of a median ≈ 1.2533 σ/√n
         return ScaleEstimate(med, sigma, len(s))
 
 
@@ -287,11 +272,6 @@ class Initialiser:
         if spread * sc < (cfg.scale_fit_min_extent_m if min_extent_m is None else min_extent_m):
             return None
         sigma = float(np.median(g[keep, 3])) / (spread * math.sqrt(keep.sum()))
-        if cfg.scale_sigma_honest:
-            # the odometry's drift bends its path by about the fit's residual, and that bend is one
-            # correlated error over the stretch, not keep.sum() independent ones
-            rms = float(np.sqrt(np.mean(resid[keep] ** 2)))
-            sigma = math.hypot(sigma, rms / spread)
         limit = cfg.scale_fit_max_disagreement_sigma
         w = self.windows
         if limit > 0 and w is not None and abs(sc - w.scale) > limit * math.hypot(sigma, w.sigma):

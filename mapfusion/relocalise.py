@@ -122,7 +122,6 @@ class RoadParticles:
         self.driven_m = 0.0
         self._xy: np.ndarray | None = None  # the particles' positions while (edge, along) are unchanged
         self._n_max = 0  # the count the filter started with (an adaptive count stays at or under it)
-        self._reversal = _Reversal(cfg.reloc_reverse_deg)
 
     def __len__(self) -> int:
         return len(self.edge)
@@ -163,7 +162,6 @@ class RoadParticles:
         self.driven_m = 0.0
         self._xy = None
         self._n_max = n
-        self._reversal = _Reversal(self.cfg.reloc_reverse_deg)
         if guess is not None:
             self.logw = guess_log_weights(guess, self.positions(), yaw)
         return int(near.size)
@@ -282,8 +280,6 @@ class RoadParticles:
         if len(self) == 0 or moved_m <= 0.0:
             return
         cfg, rng, n = self.cfg, self.rng, len(self)
-        if self._reversal.seen(chord_odo_xy):  # the odometry turned back: so may each particle (half of them do)
-            _turn_back(self, np.flatnonzero(rng.random(n) < 0.5))
         before = self.positions()
         scale = np.exp(self.log_scale) if self.scale_free else 1.0  # (a known scale: the odometry's metres)
         c, s = np.cos(self.offset) * scale, np.sin(self.offset) * scale
@@ -443,78 +439,6 @@ class RoadFollower:
         return p.road_pose(int(p.edge[i]), int(p.direction[i]), float(p.along[i]))
 
 
-#: Step chords a turn back is told over (reloc_reverse_deg): four steps, some 20 m (a U-turn of up to ~8 m radius).
-REVERSE_STEPS = 4
-
-
-class _Reversal:
-    """Tells a turn back from the odometry's step chords: a chord pointing more than ``limit_deg`` away from any of
-    the REVERSE_STEPS before it. One turn back is told once (not again within REVERSE_STEPS steps)."""
-
-    def __init__(self, limit_deg: float) -> None:
-        self.limit_rad = math.radians(limit_deg) if limit_deg > 0 else math.inf
-        self.headings: list[float | None] = []
-        self.since = REVERSE_STEPS
-
-    def seen(self, chord_xy: np.ndarray) -> bool:
-        if self.limit_rad == math.inf:
-            return False
-        ox, oy = float(chord_xy[0]), float(chord_xy[1])
-        h = math.atan2(oy, ox) if math.hypot(ox, oy) > 1.0 else None  # (a chord under a metre has no heading)
-        turned = h is not None and self.since >= REVERSE_STEPS and \
-            any(p is not None and abs(math.remainder(h - p, 2.0 * math.pi)) > self.limit_rad for p in self.headings)
-        self.headings = (self.headings + [h])[-REVERSE_STEPS:]
-        self.since = 0 if turned else self.since + 1
-        return turned
-
-
-#: A particle on a one-way road that turns back looks for the other carriageway from points across its road, this far
-#: apart (m) out to reloc_reverse_reach_m on each side, at the REVERSE_NEIGHBOURS way-points nearest each.
-REVERSE_SPACING_M = 4.0
-REVERSE_NEIGHBOURS = 4
-
-
-def _turn_back(p: RoadParticles, rows: np.ndarray) -> None:
-    """Particles ``rows`` of ``p`` turn back: on a two-way road in place; on a one-way road onto the nearest way-point
-    within ``reloc_reverse_reach_m`` whose road may be driven within 45° of the opposite heading (another edge: the
-    other carriageway), where there is one (else they go on). The way-points are looked for around points across the
-    road (the nearest to the particle itself all lie on its own road)."""
-    if rows.size == 0:
-        return
-    road = p.road
-    p._xy = None
-    two = p._two_way[p.edge[rows]]
-    p.direction[rows[two]] *= -1
-    one = rows[~two]
-    reach = p.cfg.reloc_reverse_reach_m
-    if one.size == 0 or reach <= 0:
-        return
-    xy = p.positions(p.edge[one], p.along[one])
-    back = p._heading(p.edge[one], p.along[one], p.direction[one]) + math.pi
-    side = np.arange(REVERSE_SPACING_M, reach + 1e-9, REVERSE_SPACING_M)
-    side = np.concatenate((side, -side))
-    normal = np.column_stack((-np.sin(back), np.cos(back)))
-    probes = xy[:, None, :] + side[None, :, None] * normal[:, None, :]  # (particles, probes, 2)
-    k = min(REVERSE_NEIGHBOURS, p._n_pts)
-    _, nb = road.tree.query(probes.reshape(-1, 2), k=k)
-    nb = np.asarray(nb).reshape(len(one), -1)  # (particles, probes × k)
-    nbc = np.minimum(nb, len(road.xy_m) - 1)
-    dist = np.hypot(road.xy_m[nbc, 0] - xy[:, :1], road.xy_m[nbc, 1] - xy[:, 1:])
-    yaw, travel = road.yaw_rad[nbc], road.travel[nbc]
-    lim = math.radians(45.0)
-    forward = (travel >= 0) & (np.abs(wrap_angle(yaw - back[:, None])) < lim)
-    backward = (travel <= 0) & (np.abs(wrap_angle(yaw + math.pi - back[:, None])) < lim)
-    ok = (nbc < p._n_pts) & (dist <= reach) & (forward | backward) & (road.edge[nbc] != p.edge[one][:, None])
-    has = ok.any(axis=1)
-    best = np.argmin(np.where(ok, dist, np.inf), axis=1)
-    r = np.flatnonzero(has)
-    pick = nbc[r, best[r]]
-    moved = one[r]
-    p.edge[moved] = road.edge[pick]
-    p.along[moved] = road.s_m[pick]
-    p.direction[moved] = np.where(forward[r, best[r]], 1, -1)
-
-
 def guess_log_weights(guess: Guess, xy_m: np.ndarray, heading_rad: np.ndarray) -> np.ndarray:
     """Normalised log-weights of particles at ``xy_m`` (n × 2, m) heading ``heading_rad`` (their roads' headings
     in their directions) under ``guess``: log(floor + (1 − floor) × exp(−½ (d²/σ² + a²/σ_yaw²))), normalised."""
@@ -669,7 +593,6 @@ class Relocaliser:
         self._held_m = 0.0  # driving over which the posterior has stayed converged on one moving cluster
         self._held: Located | None = None
         self.answer: Located | None = None  # the converged answer at the last step (None: not converged)
-        self.held_until_m: float | None = None  # an answer held back: the search goes on until this driven distance
         self.k0: int | None = None  # the caller's frame number of the first pose, when it gives one
         self.feed_scale: float | None = None  # the engine's odometry scale when it first fed this search
 
@@ -678,12 +601,6 @@ class Relocaliser:
         if self.feed_scale is None:
             self.feed_scale = scale
         return self.feed_scale
-
-    def hold_until(self, driven_m: float) -> float:
-        """Its answer held back: the search goes on until ``driven_m`` (set at the first call); that distance."""
-        if self.held_until_m is None:
-            self.held_until_m = driven_m
-        return self.held_until_m
 
     def add(self, x: float, y: float, yaw: float, frame: int | None = None) -> Located | None:
         """One odometry pose (``frame``: the caller's number for it, kept for the first); the converged answer,
@@ -776,24 +693,11 @@ class Search:
             self.watching = None
         return loc
 
-    def hold(self, search: Relocaliser) -> bool:
-        """Keep ``search``, whose converged answer the engine held back, running (``reloc_reweigh_held``): its
-        answer is weighed again at its next steps, over at most ``reloc_watch_m`` more driving. False (the search
-        ends) when the option is off or that driving is spent."""
-        if not self.cfg.reloc_reweigh_held:
-            return False
-        until_m = search.hold_until(search.particles.driven_m + self.cfg.reloc_watch_m)
-        if search.particles.driven_m >= until_m:
-            return False
-        self.active = search
-        return True
-
     def widen_if_stuck(self, x_m: float, y_m: float, frame: int | None = None) -> None:
         """A search that has not converged over ``reloc_give_up_m`` starts again around (x, y) with twice
-        its radius (up to ``reloc_max_radius_m``): the vehicle may have left the region. (A search that has
-        converged and is held back is not stuck.)"""
+        its radius (up to ``reloc_max_radius_m``): the vehicle may have left the region."""
         a = self.active
-        if a is not None and a.held_until_m is None and a.particles.driven_m >= self.cfg.reloc_give_up_m:
+        if a is not None and a.particles.driven_m >= self.cfg.reloc_give_up_m:
             self.begin(Region(x_m, y_m, min(2.0 * a.region.radius_m, self.cfg.reloc_max_radius_m)), a.scale_range,
                        frame)
 

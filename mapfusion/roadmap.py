@@ -190,9 +190,6 @@ class RoadMap:
         self.travel, self.against_drawing, self.legal_cos, self.legal_sin, self.two_way_sign = legal_travel(self)
         self._tree: cKDTree | None = None
         self._cells: CellIndex | None = None
-        self._neighbourhood: dict[int, np.ndarray] = {}  # (matching continuity's, by edge: built as asked)
-        self._edges_at: dict[int, list[int]] | None = None  # vertex → its edges
-        self._join_sorted: tuple[np.ndarray, np.ndarray] | None = None  # join curves' way-points by their vertex
         self._continuations: dict[int, set[int]] | None = None
 
     # ----------------------------------------------------------------- construction
@@ -357,31 +354,6 @@ class RoadMap:
         """Indices of the way-points on a way's edges (join curves excluded)."""
         row = self._way_row[int(way_id)]
         return np.flatnonzero((self.way_index == row) & ~self.is_join)
-
-    def neighbourhood(self, edge: int) -> np.ndarray:
-        """Way-point indices of an edge, the edges sharing a vertex with it, and the join curves
-        at its two vertices: where a vehicle on ``edge`` can be next (matching continuity)."""
-        cache = self._neighbourhood
-        got = cache.get(edge)
-        if got is not None:
-            return got
-        if self._edges_at is None or self._join_sorted is None:
-            edges_at: dict[int, list[int]] = {}
-            for e, (u, v) in enumerate(zip(self.edge_u.tolist(), self.edge_v.tolist())):
-                edges_at.setdefault(u, []).append(e)
-                edges_at.setdefault(v, []).append(e)
-            order = np.argsort(self.join_vertex, kind="stable")
-            self._edges_at, self._join_sorted = edges_at, (order, self.join_vertex[order])
-        ends = {int(self.edge_u[edge]), int(self.edge_v[edge])}
-        edges = sorted({e for v in ends for e in self._edges_at.get(v, [])} | {edge})
-        parts = [np.arange(self.edge_start[e], self.edge_end[e]) for e in edges]
-        order, jv = self._join_sorted
-        for v in ends:
-            a, b = np.searchsorted(jv, v), np.searchsorted(jv, v, side="right")
-            parts.append(order[a:b])
-        got = np.concatenate(parts).astype(np.intp)
-        cache[edge] = got
-        return got
 
     def continuations(self) -> dict[int, set[int]]:
         """Way id → the ways continuing it through a vertex of degree 2 (where OSM merely splits

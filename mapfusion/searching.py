@@ -100,8 +100,7 @@ class MapSearch:
         if assoc.take_became_lost():
             if search.active is None:  # (a running search goes on: its particles know more than a new one's)
                 x, y = assoc.explained_xy or (pred.x(), pred.y())
-                f = self.cfg.reloc_lost_scale_factor  # (relative to the scale the search is fed at)
-                search.begin(self._doubting(k, search.lost_region(x, y, assoc.unexplained_m)), (1.0 / f, f), frame=k)
+                search.begin(self._doubting(k, search.lost_region(x, y, assoc.unexplained_m)), frame=k)
         elif search.active is None and self._gps_went_silent(k) and reg.registered_fix_t != fixes[-1][0] \
                 and self._gps_left_it_off_the_roads(k):
             self._search_since_gps(k, pred)  # a second opinion on where GPS left it (the fixes not placed already)
@@ -119,8 +118,7 @@ class MapSearch:
                      math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
             return
         if self._rival_at_estimate(k, pred, loc, active):
-            search.hold(active)  # (reloc_reweigh_held: weighed again at its next steps, until the rival mass has gone)
-            return
+            return  # (the search ends with its answer held back)
         self._map_reanchor(k, pred, loc, active)
 
     def _gap_guess(self, prev: gtsam.Pose3, pred: gtsam.Pose3) -> Guess | None:
@@ -246,11 +244,6 @@ class MapSearch:
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
                  math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
-        est = self._estimate
-        if active.particles.scale_free and active.feed_scale is not None and est.alignment is not None:
-            scale = active.feed_scale * loc.scale  # (the search's scale is relative to the one it was fed at)
-            log.info("the search's scale re-scales the odometry: %.4f → %.4f", est.alignment.scale, scale)
-            est.set_scale(scale)
         self._anchors.reanchor(k, pred, pose, max(loc.spread_m, 2.0), max(loc.yaw_spread_rad, math.radians(2.0)),
                                active.k0 if active.k0 is not None else k, active.region, loc.driven_m)
         self.search.watch(active)

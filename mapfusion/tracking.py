@@ -55,7 +55,6 @@ def particle_config(cfg: FusionConfig) -> FusionConfig:
                                reloc_converge_mass=cfg.road_fix_min_mass,
                                reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
                                reloc_uturn_probability=cfg.road_fix_uturn_probability, reloc_uturn_at_vertex=0.0,
-                               reloc_reverse_deg=cfg.road_fix_reverse_deg,
                                reloc_kld_epsilon=cfg.road_fix_kld_epsilon, reloc_particles=cfg.road_fix_particles)
 
 
@@ -82,7 +81,7 @@ class RoadFixes:
         self._ref_pending = False  # the reference's estimate is taken at the next frame (after the fix's update)
         self._after_reanchoring = False  # the next start follows a re-anchoring: it waits for a steady heading
         self._pending: tuple[float, float, float] | None = None  # odometry pose a start's steadiness is measured from
-        self._near_only = False  # this frame: no fix far from the estimate (road_fix_near_only, road_fix_trust_fit)
+        self._near_only = False  # this frame: no fix far from the estimate (road_fix_trust_fit)
         self._ref_slack_m = 0.0  # how far from the reference an answer may lie besides drift (the start's radius)
 
     def gps_used(self, t: float) -> None:
@@ -108,16 +107,16 @@ class RoadFixes:
             searching: bool, kept_to_roads: Callable[[], bool]) -> gtsam.NonlinearFactor | None:
         """The particles' fix on frame k while GPS is silent (None: none), proposed with a scale: each fix moves the
         estimate's odometry scale ``road_fix_scale_gain`` of the way (in log) to the fix's (the map observes the
-        scale). ``searching``: a map search runs (without ``road_fix_while_searching`` the particles stop, to start
-        afresh around the estimate it leaves); ``kept_to_roads()``: the estimate's recent path kept to the roads."""
+        scale). ``searching``: a map search runs (the particles stop, to start afresh around the estimate it leaves);
+        ``kept_to_roads()``: the estimate's recent path kept to the roads."""
         if not self.enabled:
             return None
         cfg = self.cfg
-        if searching and not cfg.road_fix_while_searching:
+        if searching:
             self.drop()
             return None
         a = estimate.aligned
-        near_only = cfg.map_relocalisation and (cfg.road_fix_near_only or cfg.road_fix_trust_fit and kept_to_roads())
+        near_only = cfg.map_relocalisation and cfg.road_fix_trust_fit and kept_to_roads()
         fix = self.step(k, t, raw_xy_yaw, a.scale, pred, estimate.pos_sigma_m, near_only=near_only,
                         yaw_sigma_rad=estimate.yaw_sigma_rad)
         if fix is None:
@@ -131,7 +130,7 @@ class RoadFixes:
              sigma_m: float, near_only: bool = False, yaw_sigma_rad: float = math.inf) -> gtsam.NonlinearFactor | None:
         """Frame k at time t: the odometry's raw planar pose (its own units and frame), the estimate's scale
         (metres per odometry unit), the predicted pose and its positional σ (m); ``near_only``: no fix farther
-        than ``road_fix_agree_m`` from the estimate (``road_fix_near_only``, ``road_fix_trust_fit``);
+        than ``road_fix_agree_m`` from the estimate (``road_fix_trust_fit``);
         ``yaw_sigma_rad``: the estimate's marginal yaw σ (for ``road_fix_heading_sigma_deg``). Returns a fix on
         frame k, or None."""
         cfg = self.cfg
@@ -228,12 +227,12 @@ class RoadFixes:
 
     def _steady(self, x: float, y: float, yaw: float, scale: float) -> bool:
         """May the particles start: the odometry's heading turned by at most ``road_fix_offset_max_deg`` over its
-        last ``reloc_step_m`` — after a re-anchoring always, at every start with ``road_fix_steady_start``. The
+        last ``reloc_step_m`` — the first start after a re-anchoring. The
         particles start heading along their roads, which is where the vehicle heads only when it is not turning:
         started mid-turn at a junction, those on the road it turns into carry the turn still to come in their
         offsets, more than they may absorb, and die. A search converges where the path turns, so the re-anchoring
         it makes (and the start after it) falls at a junction."""
-        if not (self.cfg.road_fix_steady_start or self._after_reanchoring):
+        if not self._after_reanchoring:
             return True
         if self._pending is None:
             self._pending = (x, y, yaw)

@@ -29,7 +29,7 @@ def test_faithful_is_the_papers_direct_reading():
     f = FusionConfig.faithful()
     assert (f.state, f.prior_mode, f.robust_kernel, f.backend) == (StateModel.pose3, PriorMode.paper,
                                                                    RobustKernel.none, Backend.isam2)
-    assert not f.match_continuity and f.prior_on_joins and f.prior_ambiguity_m == 0 and f.prior_max_angle_deg == 180
+    assert f.prior_on_joins and f.prior_ambiguity_m == 0 and f.prior_max_angle_deg == 180
     assert not f.refine_scale and f.loose_before_init
     # the paper's numbers are the defaults of both
     d = FusionConfig()
@@ -60,13 +60,13 @@ def test_a_mode_given_by_name_is_that_mode_and_a_wrong_name_is_refused():
     import dataclasses
     import enum
 
-    from mapfusion.config import PriorTarget, TrafficSide
+    from mapfusion.config import PriorTarget, StateModel
     from mapfusion.errors import ConfigError
 
     # the engine compares modes by identity: a name left as a string would silently take another branch
-    c = FusionConfig(prior_target="band", traffic_side="left")
-    assert c.prior_target is PriorTarget.band and c.traffic_side is TrafficSide.left
-    assert dataclasses.replace(c, traffic_side="none").traffic_side is TrafficSide.none
+    c = FusionConfig(prior_target="band", state="pose3")
+    assert c.prior_target is PriorTarget.band and c.state is StateModel.pose3
+    assert dataclasses.replace(c, state="planar").state is StateModel.planar
     for f in dataclasses.fields(FusionConfig):
         v = getattr(FusionConfig(), f.name)
         if isinstance(v, enum.Enum):

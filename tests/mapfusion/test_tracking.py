@@ -147,8 +147,8 @@ def test_particles_without_a_confident_answer_start_again_around_the_estimate(ro
 def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road, seed, rival, threshold, near_only):
     """An answer farther than road_fix_agree_m from the estimate is a fix only when the particles have ruled the
     estimate's place out: their posterior mass near the estimate (outside the answer's own disc) is under
-    road_fix_rival_mass (0: always a fix). And never when the step says ``near_only`` (road_fix_near_only, or
-    road_fix_trust_fit while the estimate's recent path kept to the roads)."""
+    road_fix_rival_mass (0: always a fix). And never when the step says ``near_only`` (road_fix_trust_fit while the
+    estimate's recent path kept to the roads)."""
     from mapfusion.relocalise import RoadParticles
 
     cfg = dataclasses.replace(ON, road_fix_rival_mass=threshold)
@@ -216,19 +216,16 @@ def test_a_re_anchoring_restarts_the_particles_around_the_new_estimate_in_the_st
                                                                          ON.road_fix_radius_max_m))
 
 
-@pytest.mark.parametrize("why", ["every start", "after a re-anchoring"])
 @settings(max_examples=20, deadline=None)
 @given(turn_deg_per_m=st.floats(1.5, 10.0), straight_m=st.floats(6.0, 30.0))
-def test_a_steady_start_waits_for_the_turn_to_end(road, why, turn_deg_per_m, straight_m):
-    """After a re-anchoring (or at every start with road_fix_steady_start) the particles do not start while the
-    odometry turns by more than road_fix_offset_max_deg over reloc_step_m (here at least 7.5° per 5 m), and
-    start once it has driven straight for reloc_step_m; a first start with the defaults is on the first frame."""
-    cfg = dataclasses.replace(ON, road_fix_steady_start=why == "every start")
+def test_a_steady_start_waits_for_the_turn_to_end(road, turn_deg_per_m, straight_m):
+    """After a re-anchoring the particles do not start while the odometry turns by more than road_fix_offset_max_deg
+    over reloc_step_m (here at least 7.5° per 5 m), and start once it has driven straight for reloc_step_m; a first
+    start is on the first frame."""
     x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0))
-    fixes, eager = RoadFixes(road, cfg, Counters()), RoadFixes(road, ON, Counters())
-    if why == "after a re-anchoring":
-        fixes.reanchored()
+    fixes, eager = RoadFixes(road, ON, Counters()), RoadFixes(road, ON, Counters())
+    fixes.reanchored()
     x = y = yaw = 0.0
     k, t = 0, 10.0
     for _ in range(60):  # a 60 m turn, 1 m a frame
@@ -248,16 +245,14 @@ def test_a_steady_start_waits_for_the_turn_to_end(road, why, turn_deg_per_m, str
 def test_road_fixes_wait_while_a_search_runs(road):
     """With map_relocalisation and reloc_gps_fit_min 0 a search starts when GPS falls silent (a second opinion on
     where GPS left the estimate, here on the roads: the default would not search; begun at the silence, with no
-    replay of the path under GPS); by default no road fix enters
-    the graph while it runs (the fixes' particles start around the very estimate the search questions), and the
-    fixes come once it has ended. With road_fix_while_searching they do come during the search. (Route 2: on
-    route 1 the search, seeded by the frame it begins at, does not end within the drive.
-    With road_fix_near_only, not the default, the far fixes this test counts are refused either way.)"""
+    replay of the path under GPS); no road fix enters the graph while it runs (the fixes' particles start around
+    the very estimate the search questions), and the fixes come once it has ended; without the map search (no
+    search runs) the fixes come at once. (Route 2: on route 1 the search, seeded by the frame it begins at, does not
+    end within the drive.)"""
     drive = _wandering(road, 2)
     seen = {}
     for waits in (True, False):
-        cfg = dataclasses.replace(ON, map_relocalisation=True, road_fix_while_searching=not waits,
-                                  reloc_gps_fit_min=0.0, reloc_gps_replay_m=0.0)
+        cfg = dataclasses.replace(ON, map_relocalisation=waits, reloc_gps_fit_min=0.0, reloc_gps_replay_m=0.0)
         eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
         x, y, ox, oy, oyaw = drive
         during = after = searched = 0
@@ -273,23 +268,22 @@ def test_road_fixes_wait_while_a_search_runs(road):
             after += new if not searching and k >= 400 else 0
         seen[waits] = (during, after, searched)
     assert seen[True][2] > 0 and seen[True][0] == 0 and seen[True][1] > 0, seen
-    assert seen[False][0] > 0, seen
+    assert seen[False][2] == 0 and seen[False][1] > 0, seen
 
 
-@pytest.mark.parametrize("relocalise,trust,near", [(True, True, False), (True, False, False), (False, True, False),
-                                                   (True, False, True), (False, False, True)])
-def test_the_road_fixes_are_kept_near_only_with_a_search_to_move_the_estimate_far(road, relocalise, trust, near):
-    """With map_relocalisation (whose search moves a lost estimate far), road_fix_near_only keeps every road fix
-    near the estimate; road_fix_trust_fit does while the estimate's last reloc_gps_fit_m lay on the roads —
+@pytest.mark.parametrize("relocalise,trust", [(True, True), (True, False), (False, True)])
+def test_the_road_fixes_are_kept_near_only_with_a_search_to_move_the_estimate_far(road, relocalise, trust):
+    """With map_relocalisation (whose search moves a lost estimate far), road_fix_trust_fit keeps every road fix near
+    the estimate while the estimate's last reloc_gps_fit_m lay on the roads —
     measured by the association only with map_relocalisation. Without it the fixes may move an estimate far (they
     are the only way back). A drive tracked on Helsinki's roads after its GPS ends: at its end the path kept to the
     roads."""
     x, y, yaw, _ = graph_route(road, 3, 1500.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, 3, heading_rad=0.7, noise_m=0.02)
-    cfg = dataclasses.replace(ON, map_relocalisation=relocalise, road_fix_trust_fit=trust, road_fix_near_only=near)
+    cfg = dataclasses.replace(ON, map_relocalisation=relocalise, road_fix_trust_fit=trust)
     eng, _, err = _run(road, cfg, x, y, ox, oy, oyaw, 400)
     assert err < 15.0, err
-    assert eng._road_fixes._near_only == (relocalise and (near or trust))
+    assert eng._road_fixes._near_only == (relocalise and trust)
 
 
 @pytest.fixture(scope="module")
