@@ -308,7 +308,7 @@ class MapFusion:
                                    self._association.kept_to_roads)
         if fix is not None:
             est.add(fix)
-        est.frame(k, pred, fix is not None or prior_added, self._association)
+        est.frame(k, pred, fix is not None or prior_added, self._association.odometry_prior)
         if self.cfg.map_relocalisation:
             self._map_search.when_lost(k, pred)
         self._carry.recarry_gap(k)

@@ -15,7 +15,6 @@ from collections.abc import Callable
 import gtsam
 
 from . import factors
-from .association import MapAssociation
 from .config import FusionConfig
 from .counters import Counters
 from .initialisation import Initialiser, solve_initial_batch
@@ -24,6 +23,9 @@ from .smoother import Smoother
 from .track import Alignment, Track
 
 log = logging.getLogger(__name__)
+
+#: The map's odometry prior on frame k at a positional σ: (k, predicted pose, σ m) → a factor, or None.
+OdometryPrior = Callable[[int, gtsam.Pose3, float], "gtsam.NonlinearFactor | None"]
 
 
 class Estimate:
@@ -120,13 +122,13 @@ class Estimate:
         """Frame k's step is ``step`` (carried along the road), not the odometry's, also when a restart re-adds it."""
         self.road_steps[k] = step
 
-    def frame(self, k: int, pred: gtsam.Pose3, prior_added: bool, association: MapAssociation) -> None:
+    def frame(self, k: int, pred: gtsam.Pose3, prior_added: bool, odometry_prior: OdometryPrior) -> None:
         """Frame k is in the graph with its factors: the σs checked (:meth:`check_sigmas`), and its causal estimate
         (after an update when a map prior came or ``update_every`` frames have passed: the causal estimate of
         frame k includes its own prior)."""
         self.track.online[k] = pred
         self._since_update += 1
-        self.check_sigmas(k, pred, association)
+        self.check_sigmas(k, pred, odometry_prior)
         if prior_added or self._since_update >= self.cfg.update_every:
             sm = self.sm
             self.update()
@@ -140,9 +142,10 @@ class Estimate:
         if self.sm.update():
             self._since_update = 0
 
-    def check_sigmas(self, k: int, pred: gtsam.Pose3, association: MapAssociation) -> None:
+    def check_sigmas(self, k: int, pred: gtsam.Pose3, odometry_prior: OdometryPrior) -> None:
         """Every ``odometry_prior_every_s``: the marginal σs; paper IV.B: when the positional σ exceeds the road
-        width, the odometry estimate becomes a prior (σ the road width), so uncertainty cannot grow without bound."""
+        width, the odometry estimate becomes a prior (``odometry_prior(k, pred, σ)``: the road width as its σ, or
+        None), so uncertainty cannot grow without bound."""
         cfg, sm = self.cfg, self.smoother
         if not cfg.odometry_priors or sm is None or sm.last_updated_key < 0:
             return
@@ -153,7 +156,7 @@ class Estimate:
         if sigmas is None:
             return
         self.pos_sigma_m, self.lat_sigma_m, self.yaw_sigma_rad = sigmas
-        prior = association.odometry_prior(k, pred, self.pos_sigma_m)
+        prior = odometry_prior(k, pred, self.pos_sigma_m)
         if prior is not None:
             sm.add(prior)
             self.counters.odometry_priors += 1
