@@ -1,15 +1,14 @@
 """Which road a predicted pose lies on, and whether the map may correct it (paper III.B, DESIGN
-items 2, 3 and 7): the match by D = E + w·A (optionally preferring the roads the graph joins to
-the last one), the gates that keep wrong-road priors out, and the map prior's factor.
+items 2, 3 and 7): the match by D = E + w·A, the gates that keep wrong-road priors out, and the map prior's
+factor.
 
 A prior is added only when the predicted pose lies farther from its road than the road is wide
 (road width = lanes × ``lane_width_m``), and not when the match's angle exceeds
 ``prior_max_angle_deg``, the match lies on a join inside a junction, another way's best D is
 within ``prior_ambiguity_m`` (junctions, parallel roads; a way continuing the match's road on its line, within
-``prior_ambiguity_line_m``, is the same road and no rival), or — with ``prior_gate_sigma`` — the
-correction is implausibly large for the estimate's own uncertainty. Where the prior puts the
+``prior_ambiguity_line_m``, is the same road and no rival). Where the prior puts the
 vehicle across the road is ``prior_target``: the centre line (the paper), the nearest edge of the
-band (the default since issue 16), or the band combined with the estimate's own lateral σ; at most
+band (the default), or the band combined with the estimate's own lateral σ; at most
 one prior per ``prior_spacing_m`` of driving.
 """
 
@@ -156,9 +155,7 @@ class MapAssociation:
     def gated(self, m: Match, pred: gtsam.Pose3, lateral_m: float, width_m: float, pos_sigma_m: float) -> bool:
         """A prior from this match would likely come from the wrong road."""
         cfg = self.cfg
-        gate = cfg.prior_gate_sigma
         return (m.angle_deg > cfg.prior_max_angle_deg or (m.is_join and not cfg.prior_on_joins)
-                or (gate > 0 and lateral_m > gate * math.hypot(pos_sigma_m, 0.5 * width_m))
                 or self.ambiguous(m, pred))
 
     def prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3, dt_s: float, pos_sigma_m: float,

@@ -267,6 +267,10 @@ class FusionConfig:
                                                                   "jump_penalty", "beam", "min_posterior", "step_m")},
         "hmm_lost_cost_m": "is renamed lost_cost_m",
         "hmm_lost_after_m": "is renamed lost_after_m",
+        "reloc_hold_m": "was removed (measured worse: on 20 kidnapped runs, holding 50 / 100 m found 9 / 9 within "
+                        "500 m against 12)",
+        "prior_gate_sigma": "was removed (measured worse: on a 40-run rain set 8.48 m at 3 σ against 3.23 m "
+                            "without)",
         "match_continuity": "was removed (measured worse: once on a wrong road it kept the estimate there)",
         "continuity_slack_m": "was removed with match_continuity",
         "scale_sigma_honest": "was removed (measured worse on the held-out 60-run set, 8.38 -> 9.55 m)",
@@ -645,14 +649,6 @@ class FusionConfig:
         "that wanted a prior were gated as ambiguous on a drive with no GPS, the rival the next way of the same road; "
         "1 m: kidnapped after-error 8.46 -> 7.93 m, 60-run set ATE 7.22 -> 7.01 m (docs/method.md)",
     )
-    prior_gate_sigma: float = param(
-        0.0,
-        "Reject a map prior whose lateral correction exceeds this many σ of the "
-        "estimate's positional uncertainty combined with half the road width (a lost "
-        "estimate snapping onto a neighbouring road); 0: no gate.",
-        min=0.0,
-        source="issue 6 (wrong-road lock-in); by measurement",
-    )
     prior_on_joins: bool = param(
         False,
         "Allow map priors from way-points on the rounded joins inside junctions.",
@@ -905,10 +901,6 @@ class FusionConfig:
                                          "up to reloc_particles.", unit="1/m", min=0.01, max=1000.0,
                                          source="issue 17; by measurement: kidnapped seeds 1-10 / held-out 11-20, "
                                          "4 → 10 per m: Map-Fusion ATE 78.2 → 60.6 / 104.0 → 84.6 m")
-    reloc_hold_m: float = param(0.0, "A converged cluster counts once it has held this far, moving with the "
-                                "vehicle.", unit="m", min=0.0, max=100000.0,
-                                source="issue 17: 20 kidnapped runs, hold 0 / 50 / 100 m: 12 / 9 / 9 found within "
-                                "500 m, mean Map-Fusion ATE 76.9 / 88.8 / 103.0 m")
     reloc_doubt_m: float = param(1000.0, "A search begun when the estimate is lost within this much driving after "
                                  "a map re-anchoring also covers the region the re-anchoring's search ran in, grown "
                                  "by the distance since: the re-anchoring may have been wrong (0: the lost region "

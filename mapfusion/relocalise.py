@@ -590,8 +590,6 @@ class Relocaliser:
         self._last: tuple[float, float] | None = None
         self._moved = 0.0
         self.way_points_in_region = 0
-        self._held_m = 0.0  # driving over which the posterior has stayed converged on one moving cluster
-        self._held: Located | None = None
         self.answer: Located | None = None  # the converged answer at the last step (None: not converged)
         self.k0: int | None = None  # the caller's frame number of the first pose, when it gives one
         self.feed_scale: float | None = None  # the engine's odometry scale when it first fed this search
@@ -622,16 +620,7 @@ class Relocaliser:
         chord = np.array([x - self._anchor[0], y - self._anchor[1]])
         moved, self._anchor, self._moved = self._moved, (x, y), 0.0
         self.particles.step(moved, chord)
-        loc = self.particles.located(yaw)
-        # a cluster counts once it has held for reloc_hold_m, moving with the vehicle (a wrong one that
-        # happened to gather the mass on a straight stretch usually dies at the next turn)
-        prev = self._held
-        same = prev is not None and loc is not None and \
-            math.hypot(loc.x_m - prev.x_m, loc.y_m - prev.y_m) <= moved * loc.scale * 1.5 + \
-            self.cfg.reloc_converge_radius_m
-        self._held_m = self._held_m + moved * loc.scale if same and loc is not None else 0.0  # (metres)
-        self._held = loc
-        self.answer = loc if loc is not None and self._held_m >= self.cfg.reloc_hold_m else None
+        self.answer = self.particles.located(yaw)
         return self.answer
 
 

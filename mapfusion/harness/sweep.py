@@ -134,7 +134,7 @@ def row_key(row: dict) -> str:
 #: Fields the baseline (map priors off) never reads: changing them leaves it as it is.
 MAP_ONLY_FIELDS = frozenset({"angle_weight_m_per_deg", "search_radius_m", "prior_mode", "prior_lambda_floor_m2",
                              "robust_kernel", "robust_k", "prior_max_angle_deg",
-                             "prior_ambiguity_m", "prior_ambiguity_line_m", "prior_on_joins", "prior_gate_sigma"})
+                             "prior_ambiguity_m", "prior_ambiguity_line_m", "prior_on_joins"})
 
 
 def _baseline_key(cfg: FusionConfig) -> str:

@@ -182,8 +182,7 @@ def test_the_baseline_ignores_the_map_only_fields(tmp_path):
     road, truth, odo, gt, gxy = _biased_straight_drive(tmp_path)
     changed = dict(angle_weight_m_per_deg=3.0, search_radius_m=7.0, prior_mode=PriorMode.paper,
                    prior_lambda_floor_m2=1.0, robust_kernel="cauchy", robust_k=3.0,
-                   prior_max_angle_deg=90.0, prior_ambiguity_m=0.0, prior_ambiguity_line_m=0.0, prior_on_joins=True,
-                   prior_gate_sigma=2.0)
+                   prior_max_angle_deg=90.0, prior_ambiguity_m=0.0, prior_ambiguity_line_m=0.0, prior_on_joins=True)
     assert set(changed) == MAP_ONLY_FIELDS
     base = FusionConfig(use_map=False)
     other = FusionConfig(use_map=False, **{k: (v if k != "robust_kernel" else type(base.robust_kernel)(v))
