@@ -39,7 +39,7 @@ from .relocalise import Located
 from .roadmap import RoadMap
 from .searching import MapSearch
 from .stream import OnFinal, Release
-from .track import Alignment, JumpGuard, planar_of, track_for
+from .track import Alignment, JumpGuard, track_for
 from .tracking import RoadFixes
 
 log = logging.getLogger(__name__)
@@ -304,7 +304,7 @@ class MapFusion:
         self._carry.note_outage(k, step)
         est.sm.insert(k, pred)
         prior_added = self._map_prior(k, pred, step) if self.cfg.use_map else False
-        fix = self._road_fixes.fix(k, track.t[k], planar_of(track.raw[k]), pred, est, self._map_search.running,
+        fix = self._road_fixes.fix(k, track.t[k], track.raw[k], pred, est, self._map_search.running,
                                    self._association.kept_to_roads)
         if fix is not None:
             est.add(fix)

@@ -75,9 +75,6 @@ class Estimate:
         return self.track.to_map(raw, self.aligned)
 
     # ------------------------------------------------------------------ the scale
-    def set_alignment(self, a: Alignment) -> None:
-        self.alignment = a
-
     def set_scale(self, scale: float, scale_sigma: float | None = None) -> None:
         """The odometry's scale from now on (a GPS refit, a track run, a search's or the road fixes' answer)."""
         a = self.aligned

@@ -16,7 +16,6 @@ import numpy as np
 
 from .association import MapAssociation
 from .config import FusionConfig, OutageStep
-from .errors import EngineError
 from .estimate import Estimate
 from .geometry import cumulative_length
 from .initialisation import Initialiser
@@ -51,9 +50,8 @@ class MapSearch:
 
     def start_in_region(self, x_m: float, y_m: float, radius_m: float) -> None:
         """Cold start without GPS: the vehicle starts somewhere on the roads within ``radius_m`` of (x, y) (the map's
-        ENU frame); the odometry's shape finds it (scale in ``reloc_scale_min`` … ``reloc_scale_max``)."""
-        if not (math.isfinite(x_m) and math.isfinite(y_m) and math.isfinite(radius_m) and radius_m > 0):
-            raise EngineError(f"start region needs a finite position and radius > 0, got {x_m}, {y_m}, {radius_m}")
+        ENU frame); the odometry's shape finds it (scale in ``reloc_scale_min`` … ``reloc_scale_max``). The caller
+        checks the region (:meth:`MapFusion.start_in_region`)."""
         self.search.begin(Region(float(x_m), float(y_m), float(radius_m)),
                           (self.cfg.reloc_scale_min, self.cfg.reloc_scale_max))
 

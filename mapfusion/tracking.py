@@ -41,6 +41,7 @@ from .counters import Counters
 from .estimate import Estimate
 from .relocalise import Guess, Located, Region, RoadParticles
 from .roadmap import RoadMap
+from .track import planar_of
 
 log = logging.getLogger(__name__)
 
@@ -103,12 +104,12 @@ class RoadFixes:
         self.particles = None
         self._pending = None
 
-    def fix(self, k: int, t: float, raw_xy_yaw: tuple[float, float, float], pred: gtsam.Pose3, estimate: Estimate,
+    def fix(self, k: int, t: float, raw: gtsam.Pose3, pred: gtsam.Pose3, estimate: Estimate,
             searching: bool, kept_to_roads: Callable[[], bool]) -> gtsam.NonlinearFactor | None:
-        """The particles' fix on frame k while GPS is silent (None: none), proposed with a scale: each fix moves the
-        estimate's odometry scale ``road_fix_scale_gain`` of the way (in log) to the fix's (the map observes the
-        scale). ``searching``: a map search runs (the particles stop, to start afresh around the estimate it leaves);
-        ``kept_to_roads()``: the estimate's recent path kept to the roads."""
+        """The particles' fix on frame k (``raw``: its odometry pose) while GPS is silent (None: none), proposed with
+        a scale: each fix moves the estimate's odometry scale ``road_fix_scale_gain`` of the way (in log) to the
+        fix's (the map observes the scale). ``searching``: a map search runs (the particles stop, to start afresh
+        around the estimate it leaves); ``kept_to_roads()``: the estimate's recent path kept to the roads."""
         if not self.enabled:
             return None
         cfg = self.cfg
@@ -117,7 +118,7 @@ class RoadFixes:
             return None
         a = estimate.aligned
         near_only = cfg.map_relocalisation and cfg.road_fix_trust_fit and kept_to_roads()
-        fix = self.step(k, t, raw_xy_yaw, a.scale, pred, estimate.pos_sigma_m, near_only=near_only,
+        fix = self.step(k, t, planar_of(raw), a.scale, pred, estimate.pos_sigma_m, near_only=near_only,
                         yaw_sigma_rad=estimate.yaw_sigma_rad)
         if fix is None:
             return None
