@@ -42,12 +42,13 @@ class RecordedDrive:
 
 
 def recorded_truth(t_s: np.ndarray, xyz: np.ndarray, yaw_rad: np.ndarray, sc: Scenario, road: RoadMap,
-                   where: str) -> Truth:
+                   where: str, imu_missing: np.ndarray | None = None) -> Truth:
     """A :class:`Truth` for the sensor models from recorded poses in the map's ENU frame.
 
     GPS-denied, visually degraded stretches are the scenario's ``[[tunnels]]`` zones by distance
     along the path, plus frames under a bridge of the map (nothing tells which road a recorded
-    drive was on, so OSM tunnels are not known). Raises InputError when the truth lies off the map.
+    drive was on, so OSM tunnels are not known). ``imu_missing``: frames without inertial measurements
+    (a KITTI drive's GPS/INS track filled by interpolation). Raises InputError when the truth lies off the map.
     """
     road.check_covers(xyz[:, :2], f"{where}: the truth on the map {sc.map} (is it in that map's ENU frame, "
                       "as mapfusion import kitti writes it for the same map?)")
@@ -58,7 +59,7 @@ def recorded_truth(t_s: np.ndarray, xyz: np.ndarray, yaw_rad: np.ndarray, sc: Sc
     bridge = under_bridges(road, xyz[:, 0], xyz[:, 1], np.full(len(t_s), -1), sc.gps.bridge_lane_width_m)
     denied = (zone if sc.gps.deny_in_tunnels else np.zeros_like(zone)) | (bridge if sc.gps.deny_under_bridges else False)
     return Truth(np.asarray(t_s, float), xyz[:, 0].copy(), xyz[:, 1].copy(), xyz[:, 2].copy(),
-                 np.asarray(yaw_rad, float), denied, zone)
+                 np.asarray(yaw_rad, float), denied, zone, imu_missing)
 
 
 def _check_frame(path: Path, sc: Scenario) -> None:
@@ -83,6 +84,7 @@ def load_recorded(path: str | Path, sc: Scenario, road: RoadMap) -> RecordedDriv
         t = imp.t_s
         gps_t, gps_xyz = t.copy(), track_at_camera(imp, road.projection)
         residual = imp.georef.residual_rmse_m
+        missing = imp.filled  # the GPS/INS unit's gaps: no inertial measurement there either
         log.info("%s: georeferenced to its RTK track, residual %.3f m RMSE", p, residual)
     else:
         _check_frame(p, sc)
@@ -97,8 +99,9 @@ def load_recorded(path: str | Path, sc: Scenario, road: RoadMap) -> RecordedDriv
         else:
             gps_t, gps_xyz = np.zeros(0), np.zeros((0, 3))
         residual = None
+        missing = None
     keep = t - t[0] <= sc.duration_s + 1e-9
-    truth = recorded_truth(t[keep], xyz[keep], yaw[keep], sc, road, str(p))
+    truth = recorded_truth(t[keep], xyz[keep], yaw[keep], sc, road, str(p), None if missing is None else missing[keep])
     gkeep = gps_t - t[0] <= sc.duration_s + 1e-9
     return RecordedDrive(truth, xyz[keep, 2].copy(), gps_t[gkeep], gps_xyz[gkeep], str(p), residual)
 

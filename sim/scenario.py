@@ -69,6 +69,8 @@ class OdometryKind(str, enum.Enum):
     vo = "vo"  # stereo visual odometry, fitted to a real frame-to-frame stereo VO on KITTI (issue 22)
     vio = "vio"  # stereo visual-inertial odometry, ORB-SLAM3-like
     mono = "mono"  # monocular visual odometry: arbitrary, drifting scale (fitted to a real one, issue 22)
+    droid = "droid"  # the paper's VO: stereo DROID-SLAM, windowed bundle adjustment (fitted to its Table I)
+    orb_vio = "orb-vio"  # the paper's VIO: stereo-inertial ORB-SLAM3 (fitted to its Table I); a map reset de-localises
     recorded = "recorded"  # a real odometry's output on a recorded drive ([odometry] file, KITTI format)
     vo_wheel = "vo+wheel"  # the vo, plus wheel speed ([wheel]) and the IMU's gyro into the engine (issue 18)
     vio_wheel = "vio+wheel"  # the vio, plus wheel speed and gyro
@@ -77,6 +79,11 @@ class OdometryKind(str, enum.Enum):
     def visual(self) -> OdometryKind:
         """The camera-based part (its preset): vo for vo+wheel, vio for vio+wheel."""
         return {OdometryKind.vo_wheel: OdometryKind.vo, OdometryKind.vio_wheel: OdometryKind.vio}.get(self, self)
+
+    @property
+    def resets_delocalise(self) -> bool:
+        """Whether a map reset of the odometry counts as de-localisation, as the paper counts ORB-SLAM3's."""
+        return self is OdometryKind.orb_vio
 
     @property
     def wheel(self) -> bool:
@@ -193,7 +200,8 @@ class OdometryConfig:
     """``[odometry]``: the odometry kind; ``overrides`` (any other key of the table) replace
     fields of the kind × weather preset (see ``sim.sensors.OdometryParams``)."""
 
-    kind: OdometryKind = param(OdometryKind.vo, "vo (stereo VO) | vio (stereo VIO) | mono (monocular VO) | vo+wheel | "
+    kind: OdometryKind = param(OdometryKind.vo, "vo (stereo VO) | vio (stereo VIO) | mono (monocular VO) | droid, orb-vio (the "
+                               "paper's DROID-SLAM and ORB-SLAM3 VIO) | vo+wheel | "
                                "vio+wheel (the same with the car's wheel speed and gyro fused: [wheel]) | recorded "
                                "(a real odometry's output, with file).")
     overrides: tuple[tuple[str, float], ...] = param((), "Preset fields replaced by the scenario.")

@@ -91,6 +91,11 @@ class TruthTrack:
     yaw_rad: np.ndarray
     gps_denied: np.ndarray
     visually_degraded: np.ndarray
+    imu_missing: np.ndarray | None = None  # None: the IMU measures throughout
+
+    def __post_init__(self) -> None:
+        if self.imu_missing is None:
+            self.imu_missing = np.zeros(len(self.t_s), dtype=bool)
 
     def __len__(self) -> int:
         return len(self.t_s)

@@ -246,7 +246,7 @@ def scenarios_generate(
     maps: Annotated[Optional[list[str]], typer.Option("--maps", help="Maps (built-in names or OSM paths), repeatable.")] = None,
     seeds: Annotated[Optional[int], typer.Option("--seeds", help="Seeds 1..N.", min=1)] = None,
     weather: Annotated[Optional[list[str]], typer.Option("--weather", help="clear | rain | heavy_rain, repeatable.")] = None,
-    odometry: Annotated[Optional[list[str]], typer.Option("--odometry", help="vo | vio | mono | vo+wheel | vio+wheel, "
+    odometry: Annotated[Optional[list[str]], typer.Option("--odometry", help="vo | vio | mono | droid | orb-vio | vo+wheel | vio+wheel, "
                                                           "repeatable.")] = None,
     gps_mode: Annotated[Optional[list[str]], typer.Option("--gps-mode", help="init_only | interval | continuous, repeatable.")] = None,
     name: Annotated[Optional[str], typer.Option("--name", help="Name of the family (and prefix of its runs).")] = None,

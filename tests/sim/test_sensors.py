@@ -23,12 +23,15 @@ from sim.sensors import (
     simulate_odometry,
     truth_poses,
     apply_kidnap,
+    fast_frames,
+    imu_gap_resets,
 )
 from tests.helpers import synthetic_truth
 
 #: Fields whose "no error" value is not 0: the odometry's unit (metres), the noise multiplier while
 #: standing, and the start bias's decay length (a length, never 0).
-_NEUTRAL = {"unit_m_min": 1.0, "unit_m_max": 1.0, "standstill_noise_factor": 1.0, "start_scale_bias_m": 200.0}
+_NEUTRAL = {"unit_m_min": 1.0, "unit_m_max": 1.0, "standstill_noise_factor": 1.0, "start_scale_bias_m": 200.0,
+            "fast_speed_mps": 22.0}
 ZERO = OdometryParams(**{f.name: _NEUTRAL.get(f.name, 0.0) for f in dataclasses.fields(OdometryParams)})
 
 
@@ -500,3 +503,88 @@ def test_no_kidnap_changes_nothing():
 
     truth, odo, g = _kidnap_inputs(1)
     assert apply_kidnap(KidnapConfig(), truth, odo, g, np.random.default_rng(0)) == (odo, g, None)
+
+
+# ----------------------------------------------------------------------------- the paper's presets' terms
+@given(speed=st.floats(1.0, 40.0), threshold=st.floats(1.0, 40.0), n=st.integers(2, 300))
+def test_fast_frames_are_those_above_the_speed_over_the_window(speed, threshold, n):
+    truth = synthetic_truth("straight", n=n, speed_mps=speed)
+    dist = np.concatenate(([0.0], np.cumsum(np.hypot(np.diff(truth.x_m), np.diff(truth.y_m)))))
+    fast = fast_frames(truth.t_s, dist, threshold)
+    assert not fast[0]  # nothing driven yet
+    if abs(speed - threshold) > 1e-6 * speed:
+        assert (fast[1:] == (speed > threshold)).all()
+
+
+def test_fast_frames_average_over_the_window():
+    """5 s at 30 m/s after a long stop: fast only once the 5 s mean exceeds the threshold."""
+    t = np.arange(200) * 0.1
+    v = np.where(t >= 10.0, 30.0, 0.0)
+    dist = np.concatenate(([0.0], np.cumsum(v[:-1] * 0.1)))
+    fast = fast_frames(t, dist, 15.0)
+    first = int(np.argmax(fast))
+    assert fast[first:].all() and 12.4 <= t[first] <= 12.7  # 2.5 s of 30 m/s in 5 s: a mean of 15 m/s
+
+
+@given(gaps=st.lists(st.tuples(st.integers(0, 280), st.integers(1, 15)), max_size=6), prob=st.sampled_from([0.0, 1.0]))
+def test_an_imu_gap_resets_where_the_imu_resumes(gaps, prob):
+    miss = np.zeros(300, dtype=bool)
+    for a, length in gaps:
+        miss[a:a + length] = True
+    out = imu_gap_resets(miss, prob, np.random.default_rng(0))
+    resumes = [k for k in range(1, 300) if miss[k - 1] and not miss[k]]
+    if miss[0]:
+        resumes = resumes[1:]  # the IMU starting late is no gap
+    assert np.flatnonzero(out).tolist() == (resumes if prob == 1.0 else [])
+
+
+def test_fast_scale_loss_shortens_only_the_fast_motion():
+    slow = synthetic_truth("straight", n=301, speed_mps=10.0)
+    fast = synthetic_truth("straight", n=301, speed_mps=30.0)
+    p = _quiet(fast_scale_loss=0.1, fast_speed_mps=22.0)
+    for truth, share in ((slow, 1.0), (fast, 0.9)):
+        o = simulate_odometry(truth, p, np.random.default_rng(0))
+        travelled = o.poses[-1][0, 3]
+        true = truth.x_m[-1] - truth.x_m[0]
+        step = truth.x_m[1] - truth.x_m[0]
+        assert share * true - 0.2 * step <= travelled <= share * true + 0.2 * step + (1 - share) * step
+
+
+def test_a_gyro_bias_drifts_the_heading_with_time_not_distance():
+    """The same seed and frame count at 5 and 20 m/s: a per-second drift gives the same final heading error;
+    a per-metre drift four times as much at the higher speed."""
+    for params, ratio in ((_quiet(yaw_bias_sigma_rad_per_s=1e-3), 1.0), (_quiet(yaw_bias_sigma_rad_per_m=1e-4), 4.0)):
+        errs = [_final_errors(synthetic_truth("straight", n=201, speed_mps=v), params, range(5))[:, 2]
+                for v in (5.0, 20.0)]
+        assert np.allclose(errs[1], ratio * errs[0], rtol=1e-9, atol=1e-12)
+    err = _final_errors(synthetic_truth("straight", n=201, speed_mps=10.0), _quiet(yaw_bias_sigma_rad_per_s=1e-3),
+                        SEEDS)
+    assert _sd_ok(err[:, 2], 1e-3 * 20.0)  # 20 s
+
+
+def test_a_vio_creeps_while_standing():
+    truth = synthetic_truth("straight", n=2, speed_mps=0.0)
+    err = _final_errors(truth, _quiet(translation_noise_m=0.01, standstill_noise_factor=30.0), range(2000))
+    assert _sd_ok(err[:, 0], 0.30)
+
+
+def test_orb_vio_resets_at_imu_gaps_and_droid_loses_scale_at_motorway_speed():
+    truth = synthetic_truth("straight", n=600, speed_mps=25.0)
+    miss = np.zeros(600, dtype=bool)
+    for a in range(50, 550, 50):
+        miss[a:a + 15] = True
+    gappy = dataclasses.replace(truth, imu_missing=miss)
+    resets = [sum(e == "map_reset" for _, e in simulate_odometry(gappy, odometry_preset("orb-vio", "clear"),
+                                                                  np.random.default_rng(s)).events) for s in range(50)]
+    p = odometry_preset("orb-vio", "clear").imu_gap_reset_prob
+    assert abs(np.mean(resets) / 10 - p) < 4 * math.sqrt(p * (1 - p) / 500)  # 10 gaps × 50 runs
+    d = simulate_odometry(truth, odometry_preset("droid", "clear"), np.random.default_rng(0))
+    assert d.poses[-1][0, 3] < 0.95 * (truth.x_m[-1] - truth.x_m[0])
+    assert not simulate_odometry(gappy, odometry_preset("droid", "clear"), np.random.default_rng(0)).events
+
+
+@pytest.mark.parametrize("kind", ["vo", "vio", "mono"])
+def test_the_other_presets_set_none_of_the_paper_presets_terms(kind):
+    """Unset, the terms draw nothing: the other presets' noise streams and results stay as they were."""
+    p = odometry_preset(kind, "heavy_rain")
+    assert (p.fast_scale_loss, p.imu_gap_reset_prob, p.yaw_bias_sigma_rad_per_s) == (0.0, 0.0, 0.0)
