@@ -81,6 +81,9 @@ CASES: tuple[tuple[str, str, tuple[float, float] | None], ...] = (
     ("clear", "vo", None),  # KITTI, DROID-SLAM: about 1–5 m
     ("clear", "vio", None),  # KITTI, ORB-SLAM3 VIO: about 1–6 m
     ("rain", "vo", None),  # Oxford, DROID-SLAM in rain: about 8–20 m
+    ("clear", "droid", None),  # the same three ranges on the paper's own odometries
+    ("clear", "orb-vio", None),
+    ("rain", "droid", None),
     ("heavy_rain", "vo", (700.0, 1200.0)),  # through a tunnel in heavy rain: often de-localised
     ("heavy_rain", "vio", (700.0, 1200.0)),
 )

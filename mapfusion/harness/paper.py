@@ -185,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     from sim.scenario import load_family
 
     ap = argparse.ArgumentParser(prog="python -m mapfusion.harness.paper", description=main.__doc__)
-    ap.add_argument("--seeds", default="1-25", help="seeds A-B (inclusive)")
+    ap.add_argument("--seeds", default="1-50", help="seeds A-B (inclusive)")
     ap.add_argument("--workers", type=int, default=2)
     a = ap.parse_args(argv)
     lo, _, hi = a.seeds.partition("-")
