@@ -35,6 +35,16 @@ def pytest_addoption(parser):
                      help="fuse every run with this engine (FusionConfig) parameter changed (repeatable)")
 
 
+def real_data(sub: str, why: str) -> str:
+    """``$MAPFUSION_DATA`` when it holds ``sub``; otherwise the test is skipped, saying ``why``."""
+    import os
+
+    d = os.environ.get("MAPFUSION_DATA")
+    if not d or not os.path.isdir(os.path.join(d, sub)):
+        pytest.skip(f"{why} ($MAPFUSION_DATA/{sub})")
+    return d
+
+
 def family_group(name: str) -> str:
     """The pytest-xdist group of the tests that read a family: the simulated and the real KITTI odometry share
     one (issue 22's verdict compares them), every other family is its own."""

@@ -12,15 +12,13 @@ Table I side by side is printed at the end of ``pytest scenarios/``. Every test 
 
 from __future__ import annotations
 
-import os
-
 import pytest
 
-from mapfusion.harness.paper import (TABLE_I, average, fit_medians, fit_verdicts, no_map_runs, table_one_lines,
-                                     cells_of)
+from mapfusion.harness.paper import (TABLE_I, average, cells_of, fit_medians, fit_verdicts, no_map_runs, one_seed,
+                                     paper_cells, table_one_lines)
 from mapfusion.harness.results import Estimator
 
-from .conftest import FAMILIES, REPORTS, family_results
+from .conftest import FAMILIES, REPORTS, family_results, real_data
 
 pytestmark = [pytest.mark.sumo, pytest.mark.slow]  # minutes of KITTI drives: pytest -m slow (CI)
 
@@ -30,10 +28,7 @@ FAMILY = "kitti-paper"
 
 @pytest.fixture(scope="module")
 def data():
-    d = os.environ.get("MAPFUSION_DATA")
-    if not d or not os.path.isdir(os.path.join(d, "kitti")):
-        pytest.skip("Table I needs the KITTI drives ($MAPFUSION_DATA/kitti)")
-    return d
+    return real_data("kitti", "Table I needs the KITTI drives")
 
 
 @pytest.fixture(scope="module")
@@ -41,8 +36,7 @@ def fit(data, request):
     from sim.scenario import load_family
 
     fam = load_family(FAMILIES / f"{FAMILY}.toml")
-    firsts = [sc for sc in fam.scenarios if sc.seed == fam.scenarios[0].seed]
-    runs = no_map_runs(firsts, FIT_SEEDS, workers=request.config.getoption("--scenario-workers"))
+    runs = no_map_runs(one_seed(list(fam.scenarios)), FIT_SEEDS, workers=request.config.getoption("--scenario-workers"))
     verdicts = fit_verdicts(fit_medians(runs))
     lines = [f"{'preset':>8} {'drive':>5} {'paper':>7} {'median':>7}  fits"]
     lines += [f"{p:>8} {d:>5} {'x' if w is None else f'{w:.2f}':>7} {g:>7.2f}  {'yes' if ok else 'NO'}"
@@ -72,7 +66,7 @@ def rows(data, request):
 def test_map_fusion_average_no_higher_than_the_papers(rows, preset):
     drives = sorted(TABLE_I[preset][1])
     ours = average(cells_of(rows, preset, Estimator.mapfusion), drives)
-    paper = average(TABLE_I[preset][1], drives)
+    paper = average(paper_cells(TABLE_I[preset][1]), drives)
     assert ours is not None and paper is not None
     assert ours <= paper, f"{preset}: Map-Fusion's average {ours:.2f} m above the paper's {paper:.2f} m"
 

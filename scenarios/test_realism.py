@@ -11,14 +11,12 @@ The table of both is printed at the end of ``pytest scenarios/``.
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
 
 from mapfusion.harness.realism import format_stats, real_stats, simulated_stats, verdict_pairs, within_real_range
 
-from .conftest import REPORTS, family_group, family_results
+from .conftest import REPORTS, family_group, family_results, real_data
 
 pytestmark = [pytest.mark.sumo, pytest.mark.slow]  # minutes of drives: pytest -m slow (CI)
 
@@ -27,10 +25,7 @@ PRESETS = ("vo", "mono")
 
 @pytest.fixture(scope="module")
 def data():
-    d = os.environ.get("MAPFUSION_DATA")
-    if not d or not os.path.isdir(os.path.join(d, "vo")):
-        pytest.skip("the realism checks need the real VO results ($MAPFUSION_DATA/vo)")
-    return d
+    return real_data("vo", "the realism checks need the real VO results")
 
 
 @pytest.fixture(scope="module")

@@ -13,8 +13,6 @@ from __future__ import annotations
 import dataclasses
 import statistics
 from pathlib import Path
-from typing import Any
-
 from .results import Estimator, ate_key, delocalized_key, finished
 
 #: Table I of the paper on the development drives (ATE, m; None = de-localised, the paper's x), by preset:
@@ -74,19 +72,15 @@ def cells_of(rows: list[dict], preset: str, e: Estimator) -> dict[str, Cell]:
     return {d: paper_cell(v) for d, v in by.items()}
 
 
-def average(cells: dict[str, Cell | float | None], drives: list[str]) -> float | None:
+def paper_cells(figures: dict[str, float | None]) -> dict[str, Cell]:
+    """A row of the paper's table (ATE m, None = x) as cells, one run each."""
+    return {d: paper_cell([v]) for d, v in figures.items()}
+
+
+def average(cells: dict[str, Cell], drives: list[str]) -> float | None:
     """The mean over the drives not de-localised (the paper's Avg); None when every drive is."""
-    vals = []
-    for d in drives:
-        c = cells.get(d)
-        v = c.ate_m if isinstance(c, Cell) else c
-        if v is not None:
-            vals.append(v)
+    vals = [c.ate_m for d in drives if (c := cells.get(d)) is not None and c.ate_m is not None]
     return statistics.fmean(vals) if vals else None
-
-
-def _fmt(v: float | None) -> str:
-    return "x" if v is None else f"{v:.2f}"
 
 
 def table_one_lines(rows: list[dict]) -> list[str]:
@@ -98,45 +92,44 @@ def table_one_lines(rows: list[dict]) -> list[str]:
     for preset, (paper_none, paper_mf) in TABLE_I.items():
         name = METHOD[preset]
         ours = {e: cells_of(rows, preset, e) for e in (Estimator.odometry, Estimator.mapfusion)}
-        rows_out: list[tuple[str, dict[str, Any]]] = [
-            (f"{name} (paper)", paper_none), (f"{name} + Map-Fusion (paper)", paper_mf),
-            (f"{preset} (test bed)", ours[Estimator.odometry]),
-            (f"{preset} + Map-Fusion (test bed)", ours[Estimator.mapfusion])]
+        rows_out = [(f"{name} (paper)", paper_cells(paper_none)),
+                    (f"{name} + Map-Fusion (paper)", paper_cells(paper_mf)),
+                    (f"{preset} (test bed)", ours[Estimator.odometry]),
+                    (f"{preset} + Map-Fusion (test bed)", ours[Estimator.mapfusion])]
         for label, cells in rows_out:
-            text = [cells[d].text() if isinstance(cells.get(d), Cell) else
-                    ("–" if d not in cells else _fmt(cells[d])) for d in drives]
-            lines.append(f"{label:<36}" + "".join(f"{t:>7}" for t in text) + f"{_fmt(average(cells, drives)):>7}")
+            text = [cells.get(d, Cell(None, 0)).text() for d in drives]
+            avg = average(cells, drives)
+            avg_text = "x" if avg is None else f"{avg:.2f}"
+            lines.append(f"{label:<36}" + "".join(f"{t:>7}" for t in text) + f"{avg_text:>7}")
     return lines
 
 
 # ----------------------------------------------------------------------------- the fit without the map
 def _no_map_runs(job: tuple) -> list[dict]:
     """One scenario fused without the map once per seed (one process: the map read once)."""
-    import numpy as np
-
     from mapfusion.config import FusionConfig
-    from mapfusion.metrics import associate, ate
     from mapfusion.replay import fuse
 
-    from .pipeline import _online_arrays, fixes_of, motion_of, simulate_scenario
+    from .pipeline import _evaluate, fixes_of, map_resets, motion_of, simulate_scenario
 
     base, seeds = job
     out = []
     for seed in seeds:
-        sc = dataclasses.replace(base, seed=seed, name=f"{base.name}-n{seed}")
-        sim = simulate_scenario(sc)
+        sim = simulate_scenario(dataclasses.replace(base, seed=seed, name=f"{base.name}-n{seed}"))
         odo = sim.sensors.odometry
         res = fuse(sim.road, odo.t_s, odo.poses, fixes_of(sim.sensors, sim.road),
                    dataclasses.replace(FusionConfig(), use_map=False), motion=motion_of(sim.sensors))
-        t, xyz, _, _ = _online_arrays(res)
-        ia, ib = associate(t, sim.truth.t_s)
-        gt = np.column_stack([sim.truth.x_m, sim.truth.y_m, sim.truth.z_m])[ib]
-        a = float(ate(gt, xyz[ia]))
-        resets = sum(1 for _, what in odo.events if what == "map_reset")
-        lost = a > DELOCALISED_M or (resets > 0 and sc.odometry.kind.resets_delocalise)
-        out.append({"drive": Path(sc.truth).name, "preset": sc.odometry.kind.value, "seed": seed, "ate_m": a,
-                    "map_resets": resets, "delocalized": lost})
+        m = _evaluate(res, sim.truth, Estimator.odometry, DELOCALISED_M)
+        resets, reset_lost = map_resets(sim)
+        out.append({"drive": Path(base.truth).name, "preset": base.odometry.kind.value, "seed": seed,
+                    "ate_m": m[ate_key(Estimator.odometry)], "map_resets": resets,
+                    "delocalized": m[delocalized_key(Estimator.odometry)] or reset_lost})
     return out
+
+
+def one_seed(scenarios: list) -> list:
+    """A family's scenarios of its first seed: one per drive and preset, for :func:`no_map_runs` to seed."""
+    return [sc for sc in scenarios if sc.seed == scenarios[0].seed]
 
 
 def no_map_runs(scenarios: list, seeds: list[int], workers: int = 2) -> list[dict]:
@@ -194,8 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     if not fam.scenarios:
         print(f"no runs: {fam.unavailable[0][1] if fam.unavailable else 'the family is empty'}")
         return 2
-    firsts = [sc for sc in fam.scenarios if sc.seed == fam.scenarios[0].seed]
-    verdicts = fit_verdicts(fit_medians(no_map_runs(firsts, seeds, workers=a.workers)))
+    verdicts = fit_verdicts(fit_medians(no_map_runs(one_seed(list(fam.scenarios)), seeds, workers=a.workers)))
     print(f"median no-map ATE over seeds {seeds[0]}-{seeds[-1]} (m), against the paper's Table I (±35%)")
     for p, d, w, g, ok in verdicts:
         paper = "x" if w is None else f"{w:.2f}"

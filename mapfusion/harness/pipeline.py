@@ -146,6 +146,13 @@ def simulate_scenario(sc: Scenario, progress=None) -> Simulation:
     return Simulation(sc, road, truth, drive, synthesise(sc, truth), drive.route_length_m)
 
 
+def map_resets(sim: Simulation) -> tuple[int, bool]:
+    """The simulated odometry's map resets, and whether they de-localise the run: an ``orb-vio`` reset does,
+    as the paper counts ORB-SLAM3's."""
+    n = sum(1 for _, what in sim.sensors.odometry.events if what == "map_reset")
+    return n, n > 0 and sim.sc.odometry.kind.resets_delocalise
+
+
 def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult | None = None
                       ) -> tuple[dict, FusionResult, FusionResult]:
     """The baseline (map priors off; pass one to reuse it) and Map-Fusion with ``cfg`` on the
@@ -176,9 +183,8 @@ def fuse_and_evaluate(sim: Simulation, cfg: FusionConfig, baseline: FusionResult
         metrics.update(mb)
         metrics.update(mm)
         metrics["ate_reduction_m"] = mb[ate_key(Estimator.odometry)] - mm[ate_key(Estimator.mapfusion)]
-        resets = sum(1 for _, what in sensors.odometry.events if what == "map_reset")
-        metrics["odometry_map_resets"] = resets
-        if resets and sc.odometry.kind.resets_delocalise:  # the paper counts ORB-SLAM3's map resets as lost
+        metrics["odometry_map_resets"], lost = map_resets(sim)
+        if lost:
             metrics[delocalized_key(Estimator.odometry)] = metrics[delocalized_key(Estimator.mapfusion)] = True
         # match rate: frames outside junctions whose matched way is the way SUMO drives on (a
         # recorded drive has no such truth: null)
