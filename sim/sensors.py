@@ -64,6 +64,9 @@ class OdometryParams:
                                            "above 1, a VIO whose IMU bias makes it creep while the car stands.",
                                            unit="1",
                                            min=0.0, max=100.0)
+    standstill_noise_s: float = param(0.0, "standstill_noise_factor applies over the first this many seconds of a "
+                                      "stand; the stand's later frames are still (no noise). 0: the whole stand.",
+                                      unit="s", min=0.0, max=3600.0)
     unit_m_min: float = param(1.0, "Smallest length (m) of the odometry's unit: a monocular VO writes positions in an "
                               "arbitrary unit, drawn log-uniformly per run in [unit_m_min, unit_m_max]; 1 = metres.",
                               unit="m", min=1e-3, max=1e3)
@@ -140,7 +143,8 @@ KIND_PRESETS: dict[OdometryKind, dict[str, float]] = {
     OdometryKind.orb_vio: {"scale_error_sigma": 0.001, "scale_rw_per_sqrt_m": 1e-5, "tunnel_lose_track": 0.0,
                            "tunnel_drift_factor": 3.0, "yaw_bias_sigma_rad_per_m": 3e-5,
                            "yaw_bias_sigma_rad_per_s": 1.6e-4, "lateral_bias_sigma_m_per_m": 1e-3,
-                           "standstill_noise_factor": 30.0, "imu_gap_reset_prob": 0.12},
+                           "standstill_noise_factor": 30.0, "standstill_noise_s": 8.0,
+                           "imu_gap_reset_prob": 0.12},
     OdometryKind.vio: {"scale_error_sigma": 0.001, "scale_rw_per_sqrt_m": 1e-5, "tunnel_lose_track": 0.0,
                        "tunnel_drift_factor": 3.0, "yaw_bias_sigma_rad_per_m": 1.5e-5, "lateral_bias_sigma_m_per_m": 1e-3},
 }
@@ -455,6 +459,7 @@ def simulate_odometry(truth: Truth, p: OdometryParams, rng: np.random.Generator,
     last_good = 0
     current = np.eye(4)
     velocity_rel = np.eye(4)  # the last measured step, for constant-velocity re-initialisation
+    stand_t0: float | None = None  # the start of the stand the vehicle is in (None: moving)
     for k in range(1, n):
         ds = steps[k - 1]
         if revert > 0 and ds > 0:  # exact discretisation of the Ornstein-Uhlenbeck wander over ds
@@ -492,7 +497,12 @@ def simulate_odometry(truth: Truth, p: OdometryParams, rng: np.random.Generator,
             tx, ty, tz = r[:3, 3]
             dyaw = math.atan2(r[1, 0], r[0, 0])
             scale = (1.0 + scale_bias + scale_rw + scale_start) * (1.0 - p.fast_scale_loss if fast[k] else 1.0)
-            still = p.standstill_noise_factor if ds < STANDSTILL_STEP_M else 1.0
+            if ds >= STANDSTILL_STEP_M:
+                still, stand_t0 = 1.0, None
+            else:
+                stand_t0 = truth.t_s[k - 1] if stand_t0 is None else stand_t0
+                settled = 0.0 < p.standstill_noise_s < truth.t_s[k] - stand_t0
+                still = 0.0 if settled else p.standstill_noise_factor
             lat = (lateral0 + (sign[k] * p.rain_lateral_drift_m_per_m if episodes[k] else 0.0)) * ds * drift
             xi = np.array([
                 scale * tx + rng.normal(0.0, sig_t * still),

@@ -1,15 +1,20 @@
-"""Table I beside the paper's: the paper's protocol over repeated runs, the fit verdicts, the printed table."""
+"""The paper's tables beside the test bed's: the paper's protocol over repeated runs, the columns of a family's
+runs, the averages compared, the fit verdicts, the printed tables."""
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 from hypothesis import given
 from hypothesis import strategies as st
 
-from mapfusion.harness.paper import (FIT_TOLERANCE, TABLE_I, Cell, average, fit_medians, fit_verdicts, paper_cell,
-                                     table_one_lines, cells_of)
+from mapfusion.harness.paper import (FIT_TOLERANCE, TABLE_I, TABLES, Cell, average, both_averages, cells_of,
+                                     column_of, fit_medians, fit_verdicts, paper_cell, paper_cells, table,
+                                     table_lines, table_one_lines)
 from mapfusion.harness.results import Estimator
+
+FAMILIES = Path(__file__).resolve().parents[2] / "scenarios" / "families"
 
 _ATE = st.floats(0.01, 19.99)
 
@@ -68,3 +73,53 @@ def test_table_one_prints_the_papers_rows_beside_the_test_beds():
     ours = next(line for line in lines if line.startswith("orb-vio + Map-Fusion (test bed)"))
     assert ours.split()[-6:] == ["2.00"] * 6
     assert len(lines) == 1 + 4 * len(TABLE_I)
+
+
+def test_a_runs_column_is_its_name_without_family_preset_and_seed():
+    row = {"scenario": "oxford-paper-rain-40-s2", "seed": 2, "odometry": "droid"}
+    assert column_of(row, "oxford-paper") == "rain-40"
+    assert column_of({"scenario": "4seasons-paper-orb-vio-clear-False-s12", "seed": 12, "odometry": "orb-vio"},
+                     "4seasons-paper") == "clear-False"
+    assert column_of({"scenario": "x-s1-s1", "seed": 1, "odometry": "droid", "recorded": "/d/kitti/05"}, "x") == "05"
+
+
+def test_every_family_of_a_table_names_its_columns_by_its_zip():
+    """The column keys of each table are the run names' zip slugs of its family file, one column per zip entry,
+    and every preset row names every column."""
+    from sim.scenario import load_family
+
+    for t in TABLES[1:]:
+        fam = load_family(FAMILIES / f"{t.family}.toml")
+        found = {column_of({"scenario": sc.name, "seed": sc.seed, "odometry": sc.odometry.kind.value}, t.family)
+                 for sc in fam.scenarios}
+        assert found == set(t.keys()), t.number
+        assert {sc.odometry.kind.value for sc in fam.scenarios} == set(t.figures), t.number
+        for none, mf in t.figures.values():
+            assert set(none) == set(mf) == set(t.keys()), t.number
+
+
+@given(st.lists(st.one_of(st.none(), _ATE), min_size=3, max_size=3),
+       st.lists(st.one_of(st.none(), _ATE), min_size=3, max_size=3))
+def test_averages_are_compared_over_the_columns_both_have(ours_v, paper_v):
+    cols = ["a", "b", "c"]
+    ours, paper = (paper_cells(dict(zip(cols, v))) for v in (ours_v, paper_v))
+    o, p, lost = both_averages(ours, paper, cols)
+    common = [i for i in range(3) if ours_v[i] is not None and paper_v[i] is not None]
+    if not common:
+        assert o is None and p is None
+    else:
+        assert math.isclose(o, sum(ours_v[i] for i in common) / len(common))
+        assert math.isclose(p, sum(paper_v[i] for i in common) / len(common))
+    assert lost == [c for i, c in enumerate(cols) if paper_v[i] is not None and ours_v[i] is None]
+
+
+def test_a_table_beyond_the_first_prints_what_each_column_stands_for():
+    t = table("II")
+    rows = [{"scenario": f"{t.family}-{k}-s{s}", "seed": s, "odometry": "droid", "ate_odometry_m": 8.0,
+             "ate_mapfusion_m": 4.0, "delocalized_odometry": False, "delocalized_mapfusion": False}
+            for k in t.keys() for s in (1, 2, 3)]
+    lines = table_lines(t, rows)
+    assert lines[0].split()[-1] == "Avg" and len(lines) == 1 + 4 * len(t.figures) + len(t.columns)
+    ours = next(line for line in lines if line.startswith("droid + Map-Fusion (test bed)"))
+    assert ours.split()[-5:] == ["4.00"] * 5
+    assert any("2014-11-21-16-07-03" in line and "heavy rain" in line for line in lines)

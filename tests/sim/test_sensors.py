@@ -568,6 +568,22 @@ def test_a_vio_creeps_while_standing():
     assert _sd_ok(err[:, 0], 0.30)
 
 
+@given(st.floats(0.5, 20.0))
+@settings(max_examples=20, deadline=None)
+def test_a_vio_creeps_only_for_the_first_seconds_of_a_stand(limit_s):
+    """Standing 30 s: with standstill_noise_s the pose moves only over that many seconds of the stand, and
+    the same seeds draw the same creep up to then (the later frames draw and discard theirs)."""
+    truth = synthetic_truth("straight", n=301, speed_mps=0.0)
+    p = _quiet(translation_noise_m=0.01, rotation_noise_rad=1e-3, standstill_noise_factor=30.0)
+    capped = simulate_odometry(truth, dataclasses.replace(p, standstill_noise_s=limit_s), np.random.default_rng(3))
+    full = simulate_odometry(truth, p, np.random.default_rng(3))
+    moving = np.nonzero(np.any(np.diff(capped.poses, axis=0) != 0.0, axis=(1, 2)))[0]
+    assert moving.size and truth.t_s[moving[-1] + 1] - truth.t_s[0] <= limit_s + 1e-9
+    upto = moving[-1] + 2
+    assert np.array_equal(capped.poses[:upto], full.poses[:upto])
+    assert not np.array_equal(capped.poses[-1], full.poses[-1])
+
+
 def test_orb_vio_resets_at_imu_gaps_and_droid_loses_scale_at_motorway_speed():
     truth = synthetic_truth("straight", n=600, speed_mps=25.0)
     miss = np.zeros(600, dtype=bool)
@@ -588,3 +604,4 @@ def test_the_other_presets_set_none_of_the_paper_presets_terms(kind):
     """Unset, the terms draw nothing: the other presets' noise streams and results stay as they were."""
     p = odometry_preset(kind, "heavy_rain")
     assert (p.fast_scale_loss, p.imu_gap_reset_prob, p.yaw_bias_sigma_rad_per_s) == (0.0, 0.0, 0.0)
+    assert p.standstill_noise_s == 0.0
