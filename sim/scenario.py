@@ -574,6 +574,10 @@ def _set_dotted(d: dict, dotted: str, value: Any) -> None:
 
 
 def _slug(v: Any) -> str:
+    if isinstance(v, (list, tuple)):  # a list of tables ([[tunnels]] zones): their values, or "none"
+        return "-".join(_slug(x) for x in v) or "none"
+    if isinstance(v, dict):
+        return "-".join(_slug(x) for x in v.values())
     if isinstance(v, str) and v.startswith("$"):  # ${MAPFUSION_DATA}/osm/andorra.osm.pbf → andorra
         name = Path(v).name
         for ext in (".osm.pbf", ".osm.gz", ".osm.bz2", ".osm", ".pbf", ".tum", ".txt"):

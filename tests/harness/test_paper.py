@@ -3,6 +3,7 @@ runs, the averages compared, the fit verdicts, the printed tables."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -123,3 +124,20 @@ def test_a_table_beyond_the_first_prints_what_each_column_stands_for():
     ours = next(line for line in lines if line.startswith("droid + Map-Fusion (test bed)"))
     assert ours.split()[-5:] == ["4.00"] * 5
     assert any("2014-11-21-16-07-03" in line and "heavy rain" in line for line in lines)
+
+
+def test_a_table_prints_from_a_results_file_and_bad_input_exits_2(tmp_path, capsys):
+    from mapfusion.harness.paper import main
+
+    t = table("IV")
+    rows = [{"scenario": f"{t.family}-{k}-s1", "seed": 1, "odometry": "droid", "ate_odometry_m": 3.0,
+             "ate_mapfusion_m": 2.5, "delocalized_odometry": False, "delocalized_mapfusion": False} for k in t.keys()]
+    f = tmp_path / "results.jsonl"
+    f.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert main(["--table", "iv", str(f)]) == 0
+    out = capsys.readouterr().out
+    assert "droid + Map-Fusion (test bed)" in out and "7.02" in out
+    assert main(["--table", "V", str(f)]) == 2
+    assert main(["--table", "II", str(tmp_path / "missing.jsonl")]) == 2
+    err = capsys.readouterr().err
+    assert "no table 'V'" in err and "missing.jsonl" in err

@@ -273,6 +273,20 @@ map = "grid"
             load_family(_write(tmp_path, text, "bad.toml"))
 
 
+def test_a_zipped_list_of_tunnel_zones_names_its_runs_by_the_zones(tmp_path):
+    p = _write(tmp_path, '''
+[family]
+name = "t"
+[family.zip]
+tunnels = [[], [{ start_m = 100.0, end_m = 250.0 }]]
+[base]
+map = "grid"
+''', "t.toml")
+    fam = load_family(p)
+    assert {s.name: len(s.tunnels) for s in fam.scenarios} == {"t-none-s1": 0, "t-100.0-250.0-s1": 1}
+    assert next(s for s in fam.scenarios if s.tunnels).tunnels[0].end_m == 250.0
+
+
 def test_recorded_odometry_keys(tmp_path):
     seq = _fake_kitti(tmp_path / "seq")
     (tmp_path / "vo.txt").write_text("")
