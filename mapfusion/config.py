@@ -1184,7 +1184,8 @@ class FusionConfig:
     )
     scale_outlier_floor_m: float = param(
         3.0,
-        "Added to that bound: a turn at city speed moves the midpoint by about 2.5 m at 1 Hz.",
+        "Added to that bound: a turn at city speed moves the midpoint by about 2.5 m at 1 Hz; by the square of "
+        "the three fixes' half-span beyond 1 s (fixes 5 s apart: 25 times).",
         unit="m",
         min=0.0,
         source="issue 6",

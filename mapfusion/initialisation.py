@@ -103,7 +103,9 @@ class ScaleEstimator:
             (t0, x0, y0, _), (t1, x1, y1, s1), (t2, x2, y2, _) = self._recent
             w = (t1 - t0) / (t2 - t0) if t2 > t0 else 0.5
             mx, my = x0 + w * (x2 - x0), y0 + w * (y2 - y0)
-            if math.hypot(x1 - mx, y1 - my) > self.cfg.scale_outlier_sigma * s1 + self.cfg.scale_outlier_floor_m:
+            # a turn or a change of speed moves the midpoint by the square of the fixes' half-span
+            floor = self.cfg.scale_outlier_floor_m * max(1.0, 0.25 * (t2 - t0) ** 2)
+            if math.hypot(x1 - mx, y1 - my) > self.cfg.scale_outlier_sigma * s1 + floor:
                 self.rejected += 1
                 self._recent.remove((t1, x1, y1, s1))
                 return None

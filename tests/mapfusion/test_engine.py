@@ -104,6 +104,30 @@ def test_what_each_scale_formula_recovers():
         assert est.estimate().scale == pytest.approx(expect, rel=0.03), formula
 
 
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 100))
+def test_precise_fixes_5_s_apart_on_a_turning_drive_give_scale_samples(seed):
+    """RTK fixes (σ 0.1 m) every 5 s on a drive that turns: the midpoint of three fixes 10 s apart is off their
+    chord by tens of metres at a turn, which is the drive, not multipath; the windows take samples and find
+    the scale. A fix 30 m off among 1-Hz fixes is still left out."""
+    truth = synthetic_truth("random", n=6000, speed_mps=10.0, seed=seed)
+    T = _poses(truth)
+    for every_s, outlier in ((5.0, False), (1.0, True)):
+        gt, gxy = _gps(truth, every_s=every_s, until_s=600.0, sigma=0.1, seed=seed)
+        if outlier:
+            gxy[len(gxy) // 2] += (30.0, 0.0)
+        est = ScaleEstimator(FusionConfig(), 1.0 / every_s, 10.0)
+        gi = 0
+        for k in range(len(truth.t_s)):
+            est.add_odometry(truth.t_s[k], T[k, :3, 3] / 1.5)
+            while gi < len(gt) and gt[gi] <= truth.t_s[k]:
+                est.add_gps(gt[gi], *gxy[gi], sigma_m=0.1)
+                gi += 1
+        assert est.ready and est.estimate().scale == pytest.approx(1.5, rel=0.01)
+        # the outlier is left out, and with it the fix before it, whose midpoint it moved
+        assert est.rejected == 0 if not outlier else est.rejected in (1, 2)
+
+
 @settings(max_examples=4, deadline=None)
 @given(units=st.sampled_from([0.5, 3.0, 30.0]), seed=st.integers(0, 100))
 def test_the_estimate_does_not_depend_on_the_odometrys_units(grid, units, seed):
