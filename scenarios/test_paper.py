@@ -60,7 +60,8 @@ def test_preset_without_the_map_fits_the_papers_table_one(fit, preset):
 
 def _table_rows(request, t: PaperTable) -> list[dict]:
     rows = list(family_results(request.config, t.family).values())
-    REPORTS[f"Table {t.number}: the paper's rows beside the test bed's ({t.family}, ATE m, x = de-localised)"] = \
+    REPORTS[f"Table {t.number}, {t.dataset}: the paper's rows beside the test bed's ({t.family}, ATE m, "
+            "x = de-localised)"] = \
         table_lines(t, rows)
     return rows
 

@@ -201,11 +201,6 @@ def table_lines(t: PaperTable, rows: list[dict]) -> list[str]:
     return lines
 
 
-def table_one_lines(rows: list[dict]) -> list[str]:
-    """Table I side by side (:func:`table_lines`)."""
-    return table_lines(TABLES[0], rows)
-
-
 # ----------------------------------------------------------------------------- the fit without the map
 def _no_map_runs(job: tuple) -> list[dict]:
     """One scenario fused without the map once per seed (one process: the map read once)."""

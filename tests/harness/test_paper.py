@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from mapfusion.harness.paper import (FIT_TOLERANCE, TABLE_I, TABLES, Cell, average, both_averages, cells_of,
                                      column_of, fit_medians, fit_verdicts, paper_cell, paper_cells, table,
-                                     table_lines, table_one_lines)
+                                     table_lines)
 from mapfusion.harness.results import Estimator
 
 FAMILIES = Path(__file__).resolve().parents[2] / "scenarios" / "families"
@@ -67,7 +67,7 @@ def test_fit_medians_count_a_lost_run_as_infinite():
 
 def test_table_one_prints_the_papers_rows_beside_the_test_beds():
     rows = [_row(d, p, s, 3.0, 2.0) for d in ("00", "01", "02", "05", "07") for p in TABLE_I for s in (1, 2, 3)]
-    lines = table_one_lines(rows)
+    lines = table_lines(table("I"), rows)
     assert lines[0].split()[-6:] == ["00", "01", "02", "05", "07", "Avg"]
     paper = next(line for line in lines if line.startswith("DROID-SLAM (paper)"))
     assert paper.split()[-6:] == ["2.98", "x", "5.77", "2.29", "1.01", f"{(2.98 + 5.77 + 2.29 + 1.01) / 4:.2f}"]
