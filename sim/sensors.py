@@ -124,7 +124,8 @@ STANDSTILL_STEP_M = 0.05
 #:     (3e-5 rad/m), a creep while the car stands (standstill_noise_factor 30: 0.3 m a frame; 05 and 07 stand
 #:     7–8 s) over the first 8 s of a stand only (standstill_noise_s: KITTI's longest stand is 7.6 s, so the fit
 #:     saw no longer one; the paper's ORB-SLAM3 stays within 0.5–0.6 m of 4Seasons' city drives, traffic lights
-#:     and all, with GPS every 5 s, where an unbounded creep puts a 60-s stop 7 m off), and a map reset with probability 0.12 when the IMU resumes after a gap (imu_gap_reset_prob: the
+#:     and all, with GPS every 5 s, where an unbounded creep puts a 60-s stop 7 m off), and a map reset with
+#:     probability 0.12 when the IMU resumes after a gap (imu_gap_reset_prob: the
 #:     GPS/INS gaps a KITTI drive's track was filled over, 8 on 00, 3 on 02, 1 on 05; the paper names missing
 #:     IMU data as the cause of its de-localisations). A reset de-localises the run, as the paper counts it.
 #:   Their KITTI relative errors (mean of seeds 1–4, `mapfusion.harness.realism.simulated_stats`): droid t_err
