@@ -27,6 +27,14 @@ from .geometry import on_line
 from .matcher import Match, lateral_bound_ok, map_pose, match, match_candidates
 from .roadmap import RoadMap
 
+#: Half-width of the band the edge and band targets use, as a fraction of the road width (lanes × lane width): 0.5
+#: is the road's own half-width, 1 the paper's trigger distance. Source: issue 16; by measurement.
+PRIOR_BAND_FRACTION = 1.0
+
+#: No heading prior from a match whose angle A exceeds this: an estimate turning, changing lanes or matched to the
+#: crossing road. Unit: deg. Source: a lane change turns a vehicle some 3-6 degrees.
+HEADING_PRIOR_MAX_DEG = 10.0
+
 
 #: Distances within this of reloc_gps_fit_m count as covering it (the running sums' rounding decides nothing).
 FIT_TIE_M = 1e-6
@@ -184,14 +192,14 @@ class MapAssociation:
             # the map says the vehicle is on the road, not on its centre line: the band's
             # information given the estimate's own lateral σ (and the map's)
             sigma = max(math.hypot(lat_sigma_m, self.cfg.prior_map_sigma_m), 0.05)
-            upd = factors.band_update(m.signed_lateral_m, sigma, self.cfg.prior_band_fraction * width)
+            upd = factors.band_update(m.signed_lateral_m, sigma, PRIOR_BAND_FRACTION * width)
             if upd is None:
                 return m, None
             r_pose = _across(r_pose, upd[0])
             noise = factors.band_prior_noise(self.cfg, max(upd[1], BAND_SIGMA_FLOOR_M), self._robust)
         else:
             if self.cfg.prior_target is PriorTarget.edge:
-                r_pose = _across(r_pose, math.copysign(self.cfg.prior_band_fraction * width, m.signed_lateral_m))
+                r_pose = _across(r_pose, math.copysign(PRIOR_BAND_FRACTION * width, m.signed_lateral_m))
             v_lon, v_lat = step.x() / dt_s, step.y() / dt_s
             yaw = pred.rotation().yaw()
             motion_dir = yaw + math.atan2(step.y(), step.x()) if step.translation()[:2].any() else yaw
@@ -211,7 +219,7 @@ class MapAssociation:
         sigma = math.radians(cfg.heading_prior_sigma_deg)
         shut = yaw_sigma_rad < cfg.heading_prior_gate * sigma and not 0 < cfg.heading_prior_open_factor < sigma_factor
         if sigma <= 0 or m is None or m.is_join or self._since_heading_m < cfg.heading_prior_spacing_m or \
-                m.angle_deg > cfg.heading_prior_max_deg or shut:
+                m.angle_deg > HEADING_PRIOR_MAX_DEG or shut:
             return None
         if m.lateral_m > m.lanes * cfg.lane_width_m or not self._straight(m):
             return None

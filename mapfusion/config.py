@@ -209,14 +209,6 @@ class StateModel(str, enum.Enum):
     pose3 = "pose3"  # the paper's free Pose3: z, roll and pitch left to the optimiser
 
 
-class PlanarSteps(str, enum.Enum):
-    """How the planar state takes each odometry step onto the ground plane."""
-
-    level = "level"  # on the frame's local horizontal: the mean body up over level_window_s (the default)
-    body = "body"  # the step in the previous body frame: its x, y and yaw (a tilted odometry frame cannot shrink it)
-    world = "world"  # the odometry frame's horizontal displacement, once levelled (before issue 17's tunnels)
-
-
 class OutageStep(str, enum.Enum):
     """What the engine takes as the motion across an odometry gap longer than ``reloc_gap_s`` (the VO lost track)."""
 
@@ -255,6 +247,46 @@ class Factorization(str, enum.Enum):
     cholesky = "CHOLESKY"
 
 
+#: Settings that became fixed values of the part that uses them (name = value), each documented there.
+_FIXED_KEYS: dict[str, str] = {
+    "max_odometry_speed_mps": "mapfusion.track.MAX_ODOMETRY_SPEED_MPS = 70.0 m/s",
+    "level_window_s": "mapfusion.track.LEVEL_WINDOW_S = 60.0 s",
+    "outage_s": "mapfusion.track.OUTAGE_S = 1.0 s",
+    "prior_band_fraction": "mapfusion.association.PRIOR_BAND_FRACTION = 1.0",
+    "heading_prior_max_deg": "mapfusion.association.HEADING_PRIOR_MAX_DEG = 10.0 deg",
+    "relocalise_track_speed_mps": "mapfusion.gps_gate.RELOCALISE_TRACK_SPEED_MPS = 70.0 m/s",
+    "gps_max_frame_gap_s": "mapfusion.gps_gate.GPS_MAX_FRAME_GAP_S = 1.0 s",
+    "relocalise_window_s": "mapfusion.gps_gate.RELOCALISE_WINDOW_S = 60.0 s",
+    "relocalise_min_baseline_m": "mapfusion.gps_gate.RELOCALISE_MIN_BASELINE_M = 5.0 m",
+    "relocalise_yaw_sigma_floor_deg": "mapfusion.gps_gate.RELOCALISE_YAW_SIGMA_FLOOR_DEG = 2.0 deg",
+    "relocalise_distance_tolerance": "mapfusion.gps_gate.RELOCALISE_DISTANCE_TOLERANCE = 0.05",
+    "odometry_prior_every_s": "mapfusion.estimate.ODOMETRY_PRIOR_EVERY_S = 1.0 s",
+    "update_every": "mapfusion.estimate.UPDATE_EVERY = 5",
+    "relinearize_threshold": "mapfusion.smoother.RELINEARIZE_THRESHOLD = 0.01",
+    "reanchor_yaw_sigma_deg": "mapfusion.smoother.REANCHOR_YAW_SIGMA_DEG = 2.0 deg",
+    "reanchor_sigma_m": "mapfusion.smoother.REANCHOR_SIGMA_M = 0.5 m",
+    "init_min_fixes": "mapfusion.initialisation.INIT_MIN_FIXES = 3",
+    "init_stall_min_samples": "mapfusion.initialisation.INIT_STALL_MIN_SAMPLES = 5",
+    "init_prior_yaw_sigma_deg": "mapfusion.initialisation.INIT_PRIOR_YAW_SIGMA_DEG = 10.0 deg",
+    "init_prior_sigma_m": "mapfusion.initialisation.INIT_PRIOR_SIGMA_M = 5.0 m",
+    "init_prior_tilt_sigma_deg": "mapfusion.initialisation.INIT_PRIOR_TILT_SIGMA_DEG = 2.0 deg",
+    "init_prior_z_sigma_m": "mapfusion.initialisation.INIT_PRIOR_Z_SIGMA_M = 1.0 m",
+    "scale_outlier_sigma": "mapfusion.initialisation.SCALE_OUTLIER_SIGMA = 4.0",
+    "scale_outlier_floor_m": "mapfusion.initialisation.SCALE_OUTLIER_FLOOR_M = 3.0 m",
+    "scale_fit_min_extent_m": "mapfusion.initialisation.SCALE_FIT_MIN_EXTENT_M = 50.0 m",
+    "scale_refit_window_s": "mapfusion.initialisation.SCALE_REFIT_WINDOW_S = 300.0 s",
+    "scale_fit_min_fixes": "mapfusion.odometry_trust.SCALE_FIT_MIN_FIXES = 10",
+    "scale_fit_outlier_sigma": "mapfusion.odometry_trust.SCALE_FIT_OUTLIER_SIGMA = 3.0",
+    "scale_fit_outlier_floor_m": "mapfusion.odometry_trust.SCALE_FIT_OUTLIER_FLOOR_M = 1.0 m",
+    "outage_on_road_deg": "mapfusion.reanchoring.OUTAGE_ON_ROAD_DEG = 10.0 deg",
+    "outage_end_max_deg": "mapfusion.reanchoring.OUTAGE_END_MAX_DEG = 45.0 deg",
+    "outage_rot_sigma_deg": "mapfusion.factors.OUTAGE_ROT_SIGMA_DEG = 20.0 deg",
+    "wheel_frame_gap_s": "mapfusion.motion.WHEEL_FRAME_GAP_S = 0.3 s",
+    "wheel_scale_window_s": "mapfusion.motion.WHEEL_SCALE_WINDOW_S = 300.0 s",
+    "planar_steps": "level (mapfusion.track.track_for: body and world were measured worse)",
+}
+
+
 @dataclass(frozen=True)
 class FusionConfig:
     """Parameters of the Map-Fusion engine; the ``[mapfusion]`` table of a scenario file."""
@@ -287,6 +319,7 @@ class FusionConfig:
                                    "64.27 m; kitti-real with the search 44.39 m against 38.61 m without it)",
         "traffic_side": "was removed (measured worse: a real TrianFlow drive 23.8 -> 82.5 m, worse than without the "
                         "map, and rain 7.83 -> 9.93 m)",
+        **{k: f"is no longer a setting: fixed as {v}" for k, v in _FIXED_KEYS.items()},
     }
 
     lane_width_m: float = param(
@@ -380,17 +413,6 @@ class FusionConfig:
         unit="m/m",
         min=0.0,
         source="issue 16: by measurement on real VO, KITTI ground truth as odometry and a 60-run set (docs/method.md)",
-    )
-    max_odometry_speed_mps: float = param(
-        70.0,
-        "An odometry step implying more than this speed (scaled once initialised), and more than 20× the "
-        "median of the last 50 steps', is a VO failure (a corrupt pose, a relocalisation to a wrong place): "
-        "counted (odometry_jumps), logged and bridged with the last plausible motion, never followed.",
-        unit="m/s",
-        min=1.0,
-        max=1000.0,
-        source="issue 19: 70 m/s = 252 km/h, beyond any road vehicle; an impossible jump of 10,000 km was fused as "
-        "motion",
     )
     odometry_rot_sigma_deg_per_m: float = param(
         0.035,
@@ -505,18 +527,6 @@ class FusionConfig:
         source="issue 17: 3 keeps KITTI's good VIO as it was (the real drives slip in turns; "
         "at 0 KITTI 02 clear VIO s2 0.59 -> 2.46 m ATE; docs/method.md)",
     )
-    planar_steps: PlanarSteps = param(
-        PlanarSteps.level,
-        "planar state: each step on the odometry frame's local horizontal (level: the mean body up over "
-        "level_window_s, restarted after an outage), from the body frame alone (body), or on the frame's "
-        "horizontal levelled once at initialisation (world).",
-        source="measured (docs/method.md): a VO re-initialised after a long outage resumes in a frame pitched by "
-        "tens of degrees; level is best on the 60-run set and its held-out seeds",
-    )
-    level_window_s: float = param(
-        60.0, "planar_steps = level: the window over which the body's up axis is averaged into the local vertical.",
-        unit="s", min=0.0, exclusive_min=True, max=86400.0, source="roads are level over a minute of driving",
-    )
     prior_mode: PriorMode = param(
         PriorMode.along_free,
         "paper (σ along the road from |v_lon|) or along_free.",
@@ -547,15 +557,6 @@ class FusionConfig:
         "information given the estimate's own lateral σ (a certain estimate is moved to the band's edge, "
         "an uncertain one towards the centre).",
         source="issue 16: by measurement on real VO, KITTI ground truth as odometry and a 60-run set (docs/method.md)",
-    )
-    prior_band_fraction: float = param(
-        1.0,
-        "Half-width of the band the edge and band targets use, as a fraction of the road width "
-        "(lanes × lane width): 0.5 is the road's own half-width, 1 the paper's trigger distance.",
-        min=0.0,
-        max=1.0,
-        exclusive_min=True,
-        source="issue 16; by measurement",
     )
     prior_spacing_m: float = param(
         10.0,
@@ -621,15 +622,6 @@ class FusionConfig:
         source="issue 17: the learned factor reads 1.00 on KITTI's clear VIO and 3.00 on Helsinki "
         "heavy rain s5, whose heading priors the gate at 1 shut out (docs/method.md)",
     )
-    heading_prior_max_deg: float = param(
-        10.0,
-        "No heading prior from a match whose angle A exceeds this: an estimate turning, changing lanes or "
-        "matched to the crossing road.",
-        unit="deg",
-        min=0.0,
-        max=90.0,
-        source="a lane change turns a vehicle some 3-6 degrees",
-    )
     prior_ambiguity_m: float = param(
         3.0,
         "No map prior when another way's best D is within this of the match's: "
@@ -676,14 +668,6 @@ class FusionConfig:
         max=1000,
         source="issue 16 (real TrianFlow on KITTI 01: 80 RTK fixes in a row rejected after the VO stalled)",
     )
-    relocalise_track_speed_mps: float = param(
-        70.0,
-        "Fastest a vehicle moves between two fixes of a track run (relocalise_track_fixes).",
-        unit="m/s",
-        min=0.0,
-        exclusive_min=True,
-        source="issue 16; 250 km/h",
-    )
     relocalise_rescale_min_sigmas: float = param(
         30.0,
         "A track run (relocalise_track_fixes) whose GPS chord is at least this many fix σ long also re-scales the "
@@ -700,9 +684,6 @@ class FusionConfig:
         "leapt rather than changed its scale, and is left as it is (1: a track run never re-scales).",
         min=1.0,
         source="issue 16; a VO reporting under 1/20 of the motion has no scale to measure",
-    )
-    odometry_prior_every_s: float = param(
-        1.0, "How often the marginal σ is checked for odometry priors.", unit="s", min=0.0, exclusive_min=True
     )
     loose_before_init: bool = param(
         False,
@@ -724,13 +705,6 @@ class FusionConfig:
         True,
         "Keep refining the scale while GPS fixes arrive after initialisation.",
         source="issue 6 (a 30 s window overestimated the scale by 6%)",
-    )
-    update_every: int = param(
-        5,
-        "Frames between two smoother updates; the online estimate composes odometry on the last update in between.",
-        min=1,
-        max=1000,
-        source="speed (mapfusion bench)",
     )
     factorization: Factorization = param(Factorization.qr, "QR or CHOLESKY for ISAM2.", source="DESIGN item 7")
     lost_cost_m: float = param(20.0, "A frame is unexplained by the map when no road's D = E + w·A is within this.",
@@ -1107,21 +1081,7 @@ class FusionConfig:
     road_fix_heading_floor: float = param(0.01, "With road_fix_heading_sigma_deg: the share of a start's weight a "
                                           "particle keeps however far its heading lies from the estimate's (an "
                                           "estimate's heading may be wrong).", min=0.0, max=1.0, source="issue 21")
-    relinearize_threshold: float = param(
-        0.01,
-        "ISAM2's relinearisation threshold (tangent-space step).",
-        min=0.0,
-        exclusive_min=True,
-        source="GTSAM's examples",
-    )
     # --- initialisation details (issue 15: every number the engine uses is a documented field)
-    init_min_fixes: int = param(
-        3,
-        "Fixes needed before the GPS initialisation may run.",
-        min=2,
-        max=1000,
-        source="a heading needs two displacements",
-    )
     init_stall_s: float = param(
         5.0,
         "Initialise with fewer than scale_samples samples when no fix came for this "
@@ -1130,9 +1090,6 @@ class FusionConfig:
         min=0.0,
         exclusive_min=True,
         source="robustness (issue 6)",
-    )
-    init_stall_min_samples: int = param(
-        5, "Scale samples needed for such an early initialisation.", min=1, max=10000, source="robustness (issue 6)"
     )
     init_fit_min_extent_m: float = param(
         20.0,
@@ -1144,89 +1101,6 @@ class FusionConfig:
         source="issue 17 (never lost for good): a 3 km Helsinki drive whose 40 s of fixes circled a block (RMS spread "
                "35 m, largest chord over 36 fixes 105 m) never initialised; 20 m: a 2 m σ fix spread over 20 m "
                "fixes the heading to ~1° with 10 fixes",
-    )
-    init_prior_yaw_sigma_deg: float = param(
-        10.0,
-        "Yaw σ of the prior on the first frame.",
-        unit="deg",
-        min=0.0,
-        exclusive_min=True,
-        max=180.0,
-        source="by measurement",
-    )
-    init_prior_sigma_m: float = param(
-        5.0, "x/y σ of the prior on the first frame.", unit="m", min=0.0, exclusive_min=True, source="by measurement"
-    )
-    init_prior_tilt_sigma_deg: float = param(
-        2.0,
-        "Roll/pitch σ of the first frame's prior (pose3 state).",
-        unit="deg",
-        min=0.0,
-        exclusive_min=True,
-        max=180.0,
-        source="by measurement",
-    )
-    init_prior_z_sigma_m: float = param(
-        1.0,
-        "z σ of the first frame's prior (pose3 state).",
-        unit="m",
-        min=0.0,
-        exclusive_min=True,
-        source="by measurement",
-    )
-    scale_outlier_sigma: float = param(
-        4.0,
-        "A fix enters the scale windows only within this many of its σ (plus "
-        "scale_outlier_floor_m) of its neighbours' midpoint.",
-        min=0.0,
-        exclusive_min=True,
-        source="multipath rejection (issue 6)",
-    )
-    scale_outlier_floor_m: float = param(
-        3.0,
-        "Added to that bound: a turn at city speed moves the midpoint by about 2.5 m at 1 Hz; by the square of "
-        "the three fixes' half-span beyond 1 s (fixes 5 s apart: 25 times).",
-        unit="m",
-        min=0.0,
-        source="issue 6",
-    )
-    scale_fit_min_fixes: int = param(
-        10, "Fixes a least-squares scale fit needs.", min=3, max=100000, source="by measurement"
-    )
-    scale_fit_outlier_sigma: float = param(
-        3.0,
-        "The fit drops fixes farther than this many median σ (plus scale_fit_outlier_floor_m) from a first fit.",
-        min=0.0,
-        exclusive_min=True,
-        source="by measurement",
-    )
-    scale_fit_outlier_floor_m: float = param(
-        1.0, "Added to the fit's outlier bound.", unit="m", min=0.0, source="by measurement"
-    )
-    scale_fit_min_extent_m: float = param(
-        50.0,
-        "A fit needs the fixes to spread at least this far (RMS about their "
-        "mean); a shorter stretch says little about scale.",
-        unit="m",
-        min=0.0,
-        source="by measurement",
-    )
-    scale_refit_window_s: float = param(
-        300.0,
-        "Fixes of this many last seconds enter a refit after initialisation.",
-        unit="s",
-        min=0.0,
-        exclusive_min=True,
-        source="by measurement",
-    )
-    outage_s: float = param(
-        1.0,
-        "An odometry step spanning more than this is an outage: its σ is at least "
-        "outage_step_fraction of its length and outage_rot_sigma_deg.",
-        unit="s",
-        min=0.0,
-        exclusive_min=True,
-        source="a re-initialised VO guesses the motion it did not see",
     )
     outage_step: OutageStep = param(
         OutageStep.road,
@@ -1254,14 +1128,6 @@ class FusionConfig:
         "by the odometry's own turn over the gap (a constant turn); false: nearest straight on.",
         source="issue 17 (kidnapped: a 94° turn inside an 8 s gap)",
     )
-    outage_on_road_deg: float = param(
-        10.0,
-        "With outage_step = road: an estimate within its road's width (plus a lane) and heading along it within "
-        "this is carried on the road itself (its heading becomes the road's); else by the road's own motion from "
-        "where it is matched, its offset and heading error kept.",
-        unit="deg", min=0.0, max=180.0,
-        source="issue 17: set60 Helsinki heavy rain s6 (37 m off before a 3 s gap: 17 -> 57 m when snapped)",
-    )
     outage_end_weight_m_per_deg: float = param(
         1.0,
         "With outage_step = road: of the drives along the graph, the end taken is the one nearest the guess by "
@@ -1272,28 +1138,8 @@ class FusionConfig:
         unit="m/deg", min=0.0, max=100.0,
         source="paper III.B's w; issue 17 (kidnapped VO jumps: 8 of 60 carried steps 31–90° off the road's heading)",
     )
-    outage_end_max_deg: float = param(
-        45.0,
-        "The heading difference A in outage_end_weight_m_per_deg's D is counted up to this: ends further off the "
-        "guess's heading than this are told apart by their position alone (the odometry's turn over a gap says "
-        "roughly which way, not which of two roads both far off it).",
-        unit="deg", min=0.0, max=180.0,
-        source="issue 17: heavy-rain Kotka s2 (a 65° turn inside a 2 s gap the VO saw as 4°: uncapped, the end "
-               "165° off the truth won over the one 32° off by 4 m of D)",
-    )
     outage_step_fraction: float = param(
         0.3, "Translation σ of an outage step as a fraction of its length.", min=0.0, source="by measurement"
-    )
-    outage_rot_sigma_deg: float = param(
-        20.0, "Least rotation σ of an outage step.", unit="deg", min=0.0, max=180.0, source="by measurement"
-    )
-    gps_max_frame_gap_s: float = param(
-        1.0,
-        "A fix farther than this in time from every odometry frame is rejected.",
-        unit="s",
-        min=0.0,
-        exclusive_min=True,
-        source="robustness",
     )
     gps_gate_floor_m: float = param(
         1.0,
@@ -1302,54 +1148,12 @@ class FusionConfig:
         min=0.0,
         source="robustness (issue 6)",
     )
-    relocalise_window_s: float = param(
-        60.0,
-        "Gated fixes older than this leave the run that can trigger a GPS re-localisation.",
-        unit="s",
-        min=0.0,
-        exclusive_min=True,
-        source="issue 6",
-    )
-    relocalise_min_baseline_m: float = param(
-        5.0,
-        "A re-localisation corrects the heading only when the run's GPS and the estimate each moved at least this far.",
-        unit="m",
-        min=0.0,
-        source="issue 6",
-    )
-    relocalise_yaw_sigma_floor_deg: float = param(
-        2.0,
-        "Added to the re-localised heading's σ (atan of 3σ over the run's length).",
-        unit="deg",
-        min=0.0,
-        max=180.0,
-        source="issue 6",
-    )
     gps_reach_back: bool = param(
         True,
         "A GPS re-localisation also mends the final estimates since the last fix taken: its correction spread "
         "back in proportion to the distance driven (the compass rule), so a GPS-denied stretch is not left "
         "drifted; false: only the estimate from the re-localisation on.",
         source="issue 16 item 4 (rain-tunnel: the estimate drifted 50–135 m in GPS-denied zones)",
-    )
-    relocalise_distance_tolerance: float = param(
-        0.05,
-        "A run of fixes agrees with the odometry when their distances "
-        "differ by less than the gate plus this fraction of the distance.",
-        min=0.0,
-        source="issue 6 (scale error and drift)",
-    )
-    reanchor_yaw_sigma_deg: float = param(
-        2.0,
-        "Yaw σ of the prior that re-anchors a fresh smoother after GTSAM failed.",
-        unit="deg",
-        min=0.0,
-        exclusive_min=True,
-        max=180.0,
-        source="robustness",
-    )
-    reanchor_sigma_m: float = param(
-        0.5, "x/y σ of that prior.", unit="m", min=0.0, exclusive_min=True, source="robustness"
     )
     odometry_prior_rot_sigma_deg: float = param(
         10.0,
@@ -1418,15 +1222,6 @@ class FusionConfig:
         source="issue 18: a 0.1 s step's yaw agrees within hundredths of a degree; a VO re-initialisation turns by "
         "degrees",
     )
-    wheel_frame_gap_s: float = param(
-        0.3,
-        "With no odometry frame for this long, wheel + gyro make the frames themselves (one per nominal odometry "
-        "period), so the estimate never stops where the camera fails.",
-        unit="s",
-        min=0.01,
-        max=60.0,
-        source="issue 18: three frames at 10 Hz; a single dropped frame is bridged by the VO itself",
-    )
     wheel_scale_sigma: float = param(
         0.02,
         "σ of the wheel scale (true metres per wheel metre) before calibration; GPS fits replace it once they are "
@@ -1436,15 +1231,6 @@ class FusionConfig:
         exclusive_min=True,
         max=0.5,
         source="issue 18: tyre radius errors of 0.5–2% (wear, pressure, load)",
-    )
-    wheel_scale_window_s: float = param(
-        300.0,
-        "The wheel scale is fitted (similarity of the wheel + gyro track to the fixes) over the fixes of this last "
-        "window.",
-        unit="s",
-        min=10.0,
-        max=86400.0,
-        source="issue 18: long enough for 0.1% from 1 Hz fixes of σ 2 m; short enough to follow tyre warm-up",
     )
 
     def __post_init__(self) -> None:

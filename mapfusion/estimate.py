@@ -24,6 +24,13 @@ from .track import Alignment, Track
 
 log = logging.getLogger(__name__)
 
+#: How often the marginal σ is checked for odometry priors. Unit: s.
+ODOMETRY_PRIOR_EVERY_S = 1.0
+
+#: Frames between two smoother updates; the online estimate composes odometry on the last update in between.
+#: Source: speed (mapfusion bench).
+UPDATE_EVERY = 5
+
 #: The map's odometry prior on frame k at a positional σ: (k, predicted pose, σ m) → a factor, or None.
 OdometryPrior = Callable[[int, gtsam.Pose3, float], "gtsam.NonlinearFactor | None"]
 
@@ -121,12 +128,12 @@ class Estimate:
 
     def frame(self, k: int, pred: gtsam.Pose3, prior_added: bool, odometry_prior: OdometryPrior) -> None:
         """Frame k is in the graph with its factors: the σs checked (:meth:`check_sigmas`), and its causal estimate
-        (after an update when a map prior came or ``update_every`` frames have passed: the causal estimate of
+        (after an update when a map prior came or ``UPDATE_EVERY`` frames have passed: the causal estimate of
         frame k includes its own prior)."""
         self.track.online[k] = pred
         self._since_update += 1
         self.check_sigmas(k, pred, odometry_prior)
-        if prior_added or self._since_update >= self.cfg.update_every:
+        if prior_added or self._since_update >= UPDATE_EVERY:
             sm = self.sm
             self.update()
             if sm.last_updated_key == k:
@@ -140,13 +147,13 @@ class Estimate:
             self._since_update = 0
 
     def check_sigmas(self, k: int, pred: gtsam.Pose3, odometry_prior: OdometryPrior) -> None:
-        """Every ``odometry_prior_every_s``: the marginal σs; paper IV.B: when the positional σ exceeds the road
+        """Every ``ODOMETRY_PRIOR_EVERY_S``: the marginal σs; paper IV.B: when the positional σ exceeds the road
         width, the odometry estimate becomes a prior (``odometry_prior(k, pred, σ)``: the road width as its σ, or
         None), so uncertainty cannot grow without bound."""
         cfg, sm = self.cfg, self.smoother
         if not cfg.odometry_priors or sm is None or sm.last_updated_key < 0:
             return
-        if self.track.t[k] - self._last_cov_check_t < cfg.odometry_prior_every_s:
+        if self.track.t[k] - self._last_cov_check_t < ODOMETRY_PRIOR_EVERY_S:
             return
         self._last_cov_check_t = self.track.t[k]
         sigmas = sm.position_sigmas()

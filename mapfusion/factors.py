@@ -21,6 +21,10 @@ import gtsam
 import numpy as np
 
 from .config import FusionConfig, PriorMode, RobustKernel, StateModel
+from .track import OUTAGE_S
+
+#: Least rotation σ of an outage step. Unit: deg. Source: by measurement.
+OUTAGE_ROT_SIGMA_DEG = 20.0
 
 
 def world_covariance(motion_dir_rad: float, v_lon_mps: float, v_lat_mps: float, floor_m2: float,
@@ -137,7 +141,7 @@ def outage_sigma_m(cfg: FusionConfig, step: gtsam.Pose3, gap_s: float) -> float:
     """How far the estimate after an odometry outage may be from the truth (σ, m; 0 for an ordinary step):
     the step across it is a re-initialised odometry's guess (``outage_step_fraction`` of its length), and the
     vehicle may have moved ``reloc_gap_speed_mps`` × the gap in any direction."""
-    if gap_s <= cfg.outage_s:
+    if gap_s <= OUTAGE_S:
         return 0.0
     tr = step.translation()
     return max(cfg.outage_step_fraction * math.sqrt(tr.dot(tr)), cfg.reloc_gap_speed_mps * gap_s)
@@ -147,7 +151,7 @@ def odometry_noise(cfg: FusionConfig, step: gtsam.Pose3, gap_frames: float, peri
                    before_init: bool = False, scale_sigma: float | None = None,
                    sigma_factor: float = 1.0) -> gtsam.noiseModel.Base:
     """σ of one odometry step. A step across dropped frames is looser in proportion to the frames
-    it spans, and one across an outage (over ``outage_s``) is at least ``outage_step_fraction`` of
+    it spans, and one across an outage (over ``OUTAGE_S``) is at least ``outage_step_fraction`` of
     its length: a re-initialised odometry guesses the motion it did not see. Before initialisation
     the step is either loose (``loose_before_init``) or inflated by the scale's relative σ
     (``scale_sigma``: σ / scale). ``sigma_factor`` multiplies the configured σ (the learned odometry σ)."""
@@ -157,9 +161,9 @@ def odometry_noise(cfg: FusionConfig, step: gtsam.Pose3, gap_frames: float, peri
     st = sigma_factor * math.hypot(cfg.odometry_sigma_after_init_m * n, cfg.odometry_sigma_per_m * length_m)
     sr = sigma_factor * math.hypot(math.radians(cfg.odometry_rot_sigma_deg) * n,
                                    math.radians(cfg.odometry_rot_sigma_deg_per_m) * length_m)
-    if n * period_s > cfg.outage_s:
+    if n * period_s > OUTAGE_S:
         st = max(st, cfg.outage_step_fraction * length_m)
-        sr = max(sr, math.radians(cfg.outage_rot_sigma_deg))
+        sr = max(sr, math.radians(OUTAGE_ROT_SIGMA_DEG))
     if before_init and cfg.loose_before_init:
         st, sr = cfg.odometry_sigma_before_init_m, 10.0 * sr
     elif before_init:

@@ -5,7 +5,7 @@ A fix is taken when it lies within ``gps_gate_sigma`` of its combined spread (th
 estimate's positional σ and a floor) from the frame's estimate. A run of rejected fixes that agree
 with each other — each one's distance from the run's first matches the odometry's over the same
 frames, within the gate and a fraction of the distance — means the estimate is lost: after
-``relocalise_after_fixes`` such fixes within ``relocalise_window_s`` the engine re-initialises
+``relocalise_after_fixes`` such fixes within ``RELOCALISE_WINDOW_S`` the engine re-initialises
 from them. So does a longer run, ``relocalise_track_fixes``, that agrees only with itself (each fix
 within a vehicle's reach of the one before) while the odometry's distances disagree: the odometry
 is what failed then (it stalled, jumped, lost its scale), and a drive of consecutive fixes none of
@@ -23,6 +23,27 @@ import gtsam
 from .config import FusionConfig, StateModel
 from .track import Track, level
 
+#: Fastest a vehicle moves between two fixes of a track run (relocalise_track_fixes). Unit: m/s. Source: issue 16;
+#: 250 km/h.
+RELOCALISE_TRACK_SPEED_MPS = 70.0
+
+#: A fix farther than this in time from every odometry frame is rejected. Unit: s. Source: robustness.
+GPS_MAX_FRAME_GAP_S = 1.0
+
+#: Gated fixes older than this leave the run that can trigger a GPS re-localisation. Unit: s. Source: issue 6.
+RELOCALISE_WINDOW_S = 60.0
+
+#: A re-localisation corrects the heading only when the run's GPS and the estimate each moved at least this far.
+#: Unit: m. Source: issue 6.
+RELOCALISE_MIN_BASELINE_M = 5.0
+
+#: Added to the re-localised heading's σ (atan of 3σ over the run's length). Unit: deg. Source: issue 6.
+RELOCALISE_YAW_SIGMA_FLOOR_DEG = 2.0
+
+#: A run of fixes agrees with the odometry when their distances differ by less than the gate plus this fraction of
+#: the distance. Source: issue 6 (scale error and drift).
+RELOCALISE_DISTANCE_TOLERANCE = 0.05
+
 
 #: A fix waiting for its frame: (t, x, y, alt or None, σ), map ENU metres.
 Fix = tuple[float, float, float, "float | None", float]
@@ -30,7 +51,7 @@ Fix = tuple[float, float, float, "float | None", float]
 
 class GpsQueue:
     """Fixes that arrived before the odometry frame nearest to them: each is handed out once that
-    frame exists, or counted as rejected for its time (no frame within ``gps_max_frame_gap_s``)."""
+    frame exists, or counted as rejected for its time (no frame within ``GPS_MAX_FRAME_GAP_S``)."""
 
     def __init__(self, cfg: FusionConfig) -> None:
         self.cfg = cfg
@@ -45,7 +66,7 @@ class GpsQueue:
                 keep.append(fix)
                 continue
             k = track.frame_at(t)
-            if abs(track.t[k] - t) > self.cfg.gps_max_frame_gap_s:
+            if abs(track.t[k] - t) > GPS_MAX_FRAME_GAP_S:
                 counters.gps_rejected_time += 1
                 continue
             out.append((k, fix))
@@ -139,10 +160,10 @@ class GpsGate:
         cfg = self.cfg
         if track.online[k] is None:  # (a re-localisation needs the estimate at both ends of its run)
             return len(self.track)
-        self.track = [r for r in self.track if t - r[0] <= cfg.relocalise_window_s]
+        self.track = [r for r in self.track if t - r[0] <= RELOCALISE_WINDOW_S]
         if self.track:
             t0, x0, y0, _ = self.track[-1]
-            reach = cfg.relocalise_track_speed_mps * abs(t - t0) + cfg.gps_gate_sigma * math.sqrt(2.0) * sigma
+            reach = RELOCALISE_TRACK_SPEED_MPS * abs(t - t0) + cfg.gps_gate_sigma * math.sqrt(2.0) * sigma
             if math.hypot(x - x0, y - y0) > reach:
                 self.track = []
         self.track.append((t, x, y, k))
@@ -163,7 +184,7 @@ class GpsGate:
         """Add a gated fix to the run; the run is then its longest consistent tail within the window (a fix
         that disagrees — one taken in an outage and attached to the frame after it, an outlier — leaves it
         rather than blocking every later run); returns its length."""
-        self.run = [r for r in self.run if t - r[0] <= self.cfg.relocalise_window_s] + [(t, x, y, k)]
+        self.run = [r for r in self.run if t - r[0] <= RELOCALISE_WINDOW_S] + [(t, x, y, k)]
         while len(self.run) >= 2 and not self._consistent(track, sigma):
             self.run.pop(0)
         return len(self.run)
@@ -181,7 +202,7 @@ class GpsGate:
             do = math.hypot(p.x() - p0.x(), p.y() - p0.y())
             if (
                 abs(dg - do)
-                > self.cfg.gps_gate_sigma * math.sqrt(2.0) * sigma + self.cfg.relocalise_distance_tolerance * do
+                > self.cfg.gps_gate_sigma * math.sqrt(2.0) * sigma + RELOCALISE_DISTANCE_TOLERANCE * do
             ):
                 return False
         return True
@@ -198,7 +219,7 @@ class GpsGate:
         dg = (xn - x0, yn - y0)
         do = (pn.x() - p0.x(), pn.y() - p0.y())
         length = math.hypot(*dg)
-        base = cfg.relocalise_min_baseline_m
+        base = RELOCALISE_MIN_BASELINE_M
         delta = math.atan2(dg[1], dg[0]) - math.atan2(do[1], do[0]) if length > base and math.hypot(*do) > base else 0.0
         yaw = pn.rotation().yaw() + delta
         anchor = gtsam.Pose3(
@@ -207,7 +228,7 @@ class GpsGate:
         if cfg.state is StateModel.planar:
             anchor = level(anchor)
         # a 3σ error at either end of the run's chord, plus a floor
-        yaw_sigma = math.atan2(3.0 * sigma, max(length, 1.0)) + math.radians(cfg.relocalise_yaw_sigma_floor_deg)
+        yaw_sigma = math.atan2(3.0 * sigma, max(length, 1.0)) + math.radians(RELOCALISE_YAW_SIGMA_FLOOR_DEG)
         since_k, fixes = self.open_k, tuple((x, y, k) for _, x, y, k in self.run)
         self.run, self.track, self.open_k = [], [], -1
         taken_k, self.taken_k = (self.taken_k if self.taken_k < k0 else -1), kn

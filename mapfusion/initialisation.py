@@ -38,8 +38,42 @@ from .counters import Counters
 from .factors import X
 from .metrics import umeyama
 from .track import Alignment, Track
+from .odometry_trust import SCALE_FIT_MIN_FIXES, SCALE_FIT_OUTLIER_FLOOR_M, SCALE_FIT_OUTLIER_SIGMA
 
 log = logging.getLogger(__name__)
+
+#: Fixes needed before the GPS initialisation may run. Source: a heading needs two displacements.
+INIT_MIN_FIXES = 3
+
+#: Scale samples needed for such an early initialisation. Source: robustness (issue 6).
+INIT_STALL_MIN_SAMPLES = 5
+
+#: Yaw σ of the prior on the first frame. Unit: deg. Source: by measurement.
+INIT_PRIOR_YAW_SIGMA_DEG = 10.0
+
+#: x/y σ of the prior on the first frame. Unit: m. Source: by measurement.
+INIT_PRIOR_SIGMA_M = 5.0
+
+#: Roll/pitch σ of the first frame's prior (pose3 state). Unit: deg. Source: by measurement.
+INIT_PRIOR_TILT_SIGMA_DEG = 2.0
+
+#: z σ of the first frame's prior (pose3 state). Unit: m. Source: by measurement.
+INIT_PRIOR_Z_SIGMA_M = 1.0
+
+#: A fix enters the scale windows only within this many of its σ (plus SCALE_OUTLIER_FLOOR_M) of its neighbours'
+#: midpoint. Source: multipath rejection (issue 6).
+SCALE_OUTLIER_SIGMA = 4.0
+
+#: Added to that bound: a turn at city speed moves the midpoint by about 2.5 m at 1 Hz; by the square of the three
+#: fixes' half-span beyond 1 s (fixes 5 s apart: 25 times). Unit: m. Source: issue 6.
+SCALE_OUTLIER_FLOOR_M = 3.0
+
+#: A fit needs the fixes to spread at least this far (RMS about their mean); a shorter stretch says little about
+#: scale. Unit: m. Source: by measurement.
+SCALE_FIT_MIN_EXTENT_M = 50.0
+
+#: Fixes of this many last seconds enter a refit after initialisation. Unit: s. Source: by measurement.
+SCALE_REFIT_WINDOW_S = 300.0
 
 
 def window_counts(cfg: FusionConfig, f_gps_hz: float, f_vo_hz: float) -> tuple[int, int]:
@@ -104,8 +138,8 @@ class ScaleEstimator:
             w = (t1 - t0) / (t2 - t0) if t2 > t0 else 0.5
             mx, my = x0 + w * (x2 - x0), y0 + w * (y2 - y0)
             # a turn or a change of speed moves the midpoint by the square of the fixes' half-span
-            floor = self.cfg.scale_outlier_floor_m * max(1.0, 0.25 * (t2 - t0) ** 2)
-            if math.hypot(x1 - mx, y1 - my) > self.cfg.scale_outlier_sigma * s1 + floor:
+            floor = SCALE_OUTLIER_FLOOR_M * max(1.0, 0.25 * (t2 - t0) ** 2)
+            if math.hypot(x1 - mx, y1 - my) > SCALE_OUTLIER_SIGMA * s1 + floor:
                 self.rejected += 1
                 self._recent.remove((t1, x1, y1, s1))
                 return None
@@ -204,17 +238,17 @@ class Initialiser:
         """The alignment once the windows have enough samples (or GPS stalled with a few, or with too few but
         fixes spread far enough for a similarity fit: :meth:`_align_by_fit`), or None."""
         cfg = self.cfg
-        if len(self.fixes) < cfg.init_min_fixes or not track.t:
+        if len(self.fixes) < INIT_MIN_FIXES or not track.t:
             return None
         est = self.scale_estimator.estimate()
         stalled = track.t[-1] - self.fixes[-1][0] > cfg.init_stall_s
-        if est is None or not (self.scale_estimator.ready or stalled and est.samples >= cfg.init_stall_min_samples):
+        if est is None or not (self.scale_estimator.ready or stalled and est.samples >= INIT_STALL_MIN_SAMPLES):
             return self._align_by_fit(track, est) if stalled and cfg.init_fit_min_extent_m > 0 else None
         self._level(track)
         g = np.array([(t, x, y) for t, x, y, _ in self.fixes])
         g = g[g[:, 0] <= track.t[-1] + 1e-9]
         g = g[g[:, 0] >= track.t[0] - 1e-9]
-        if len(g) < cfg.init_min_fixes:
+        if len(g) < INIT_MIN_FIXES:
             return None
         odo_xyz = np.array([track.raw_at(t).translation() for t in g[:, 0]])
         rot = heading_offset(g[:, 1:3], odo_xyz[:, :2])
@@ -238,7 +272,7 @@ class Initialiser:
                 log.info("odometry frame levelled by %.2f°", math.degrees(angle))
 
     def _align_by_fit(self, track: Track, est: ScaleEstimate | None) -> Alignment | None:
-        """GPS stalled before the windows took ``init_stall_min_samples`` samples — a drive whose fixes never
+        """GPS stalled before the windows took ``INIT_STALL_MIN_SAMPLES`` samples — a drive whose fixes never
         spanned a chord of ``scale_min_distance_m`` (one that circled a block): the alignment is the least-squares
         similarity fit to the fixes (:meth:`fit`) when they spread ``init_fit_min_extent_m`` about their mean, or
         None (the engine waits for more fixes)."""
@@ -256,22 +290,22 @@ class Initialiser:
         """Least-squares similarity between the raw odometry and the fixes after ``since_t``
         (outliers beyond the fit's bound of a first fit dropped), or None when there are too few
         fixes, too little motion (their RMS spread below ``min_extent_m``, by default
-        ``scale_fit_min_extent_m``), or the fit disagrees with the windows' median."""
+        ``SCALE_FIT_MIN_EXTENT_M``), or the fit disagrees with the windows' median."""
         cfg = self.cfg
         lo, hi = max(since_t, track.t[track.first] - 0.5), track.t[-1] + 0.5
         g = np.array([f for f in self.fixes if lo <= f[0] <= hi]).reshape(-1, 4)
-        if len(g) < cfg.scale_fit_min_fixes:
+        if len(g) < SCALE_FIT_MIN_FIXES:
             return None
         o = np.array([track.raw_at(t).translation()[:2] for t in g[:, 0]])
         keep = np.ones(len(g), dtype=bool)
         for _ in range(2):
             r, tr, sc = umeyama(o[keep], g[keep, 1:3], with_scale=True)
             resid = np.hypot(*(g[:, 1:3] - (sc * o @ r.T + tr)).T)
-            keep = resid <= cfg.scale_fit_outlier_sigma * np.median(g[:, 3]) + cfg.scale_fit_outlier_floor_m
-            if keep.sum() < cfg.scale_fit_min_fixes:
+            keep = resid <= SCALE_FIT_OUTLIER_SIGMA * np.median(g[:, 3]) + SCALE_FIT_OUTLIER_FLOOR_M
+            if keep.sum() < SCALE_FIT_MIN_FIXES:
                 return None
         spread = float(np.sqrt(np.mean(np.sum((o[keep] - o[keep].mean(0)) ** 2, axis=1))))
-        if spread * sc < (cfg.scale_fit_min_extent_m if min_extent_m is None else min_extent_m):
+        if spread * sc < (SCALE_FIT_MIN_EXTENT_M if min_extent_m is None else min_extent_m):
             return None
         sigma = float(np.median(g[keep, 3])) / (spread * math.sqrt(keep.sum()))
         limit = cfg.scale_fit_max_disagreement_sigma
@@ -291,13 +325,13 @@ class Initialiser:
 
     def refit_with_fix(self, track: Track, t: float, x: float, y: float, sigma: float) -> Alignment | None:
         """A fix after initialisation: every ``scale_samples`` fixes, a refit over the last
-        ``scale_refit_window_s`` (its scale and σ replace the current ones), else None."""
+        ``SCALE_REFIT_WINDOW_S`` (its scale and σ replace the current ones), else None."""
         self.fixes.append((t, x, y, sigma))
         self._fixes_since_fit += 1
         if self._fixes_since_fit < self.cfg.scale_samples:
             return None
         self._fixes_since_fit = 0
-        return self.fit(track, max(t - self.cfg.scale_refit_window_s, self._refit_from_t))
+        return self.fit(track, max(t - SCALE_REFIT_WINDOW_S, self._refit_from_t))
 
 
 @dataclass(frozen=True)
@@ -317,8 +351,8 @@ def solve_initial_batch(cfg: FusionConfig, track: Track, alignment: Alignment, f
     graph = gtsam.NonlinearFactorGraph()
     values = gtsam.Values()
     guesses = [track.to_map(raw, alignment) for raw in track.raw]
-    sig = factors.pose_sigmas(cfg.state, math.radians(cfg.init_prior_yaw_sigma_deg), cfg.init_prior_sigma_m,
-                              tilt_rad=math.radians(cfg.init_prior_tilt_sigma_deg), z_m=cfg.init_prior_z_sigma_m)
+    sig = factors.pose_sigmas(cfg.state, math.radians(INIT_PRIOR_YAW_SIGMA_DEG), INIT_PRIOR_SIGMA_M,
+                              tilt_rad=math.radians(INIT_PRIOR_TILT_SIGMA_DEG), z_m=INIT_PRIOR_Z_SIGMA_M)
     graph.add(factors.pose_prior(anchor, guesses[anchor], factors.diagonal(sig)))
     values.insert(X(0), guesses[0])
     for k in range(1, len(track)):

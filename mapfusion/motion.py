@@ -9,7 +9,7 @@ the wheel's speed, yaw from the gyro's rate less its bias). It keeps two calibra
   while the wheel says the vehicle stands still; least squares with exponential forgetting
   (``gyro_bias_time_constant_s``);
 - the **wheel scale** (true metres per wheel metre): a similarity fit of the wheel + gyro
-  dead-reckoned track to the GPS fixes of the last ``wheel_scale_window_s`` (where the wheels may
+  dead-reckoned track to the GPS fixes of the last ``WHEEL_SCALE_WINDOW_S`` (where the wheels may
   slip, the odometry's distance), with its σ from the fit's residuals; until a fit is more certain
   than ``wheel_scale_sigma`` it stays 1. A calibrated wheel also gives the odometry's scale.
 
@@ -38,6 +38,16 @@ from .metrics import umeyama
 from .track import Alignment, Track
 
 log = logging.getLogger(__name__)
+
+#: With no odometry frame for this long, wheel + gyro make the frames themselves (one per nominal odometry period),
+#: so the estimate never stops where the camera fails. Unit: s. Source: issue 18: three frames at 10 Hz; a single
+#: dropped frame is bridged by the VO itself.
+WHEEL_FRAME_GAP_S = 0.3
+
+#: The wheel scale is fitted (similarity of the wheel + gyro track to the fixes) over the fixes of this last
+#: window. Unit: s. Source: issue 18: long enough for 0.1% from 1 Hz fixes of σ 2 m; short enough to follow tyre
+#: warm-up.
+WHEEL_SCALE_WINDOW_S = 300.0
 
 
 class MotionInputError(InputError):
@@ -223,14 +233,14 @@ class WheelGyro:
             self._dr_xy.append((x, y))
         self._dr_t.append(t1)
         self._dr_xy.append(self._dr_pose[:2])
-        while self._dr_t[0] < t1 - self.cfg.wheel_scale_window_s - 10.0:
+        while self._dr_t[0] < t1 - WHEEL_SCALE_WINDOW_S - 10.0:
             self._dr_t.popleft()
             self._dr_xy.popleft()
 
     def add_fix(self, t: float, x_m: float, y_m: float) -> None:
         """A GPS fix (map ENU): refit the wheel scale over the window's fixes."""
         self._fixes.append((t, x_m, y_m))
-        while self._fixes[0][0] < t - self.cfg.wheel_scale_window_s:
+        while self._fixes[0][0] < t - WHEEL_SCALE_WINDOW_S:
             self._fixes.popleft()
         self._fit_scale()
 
@@ -305,7 +315,7 @@ def _as_raw(step: PlanarStep, metres_per_unit: float, like: gtsam.Pose3 | None) 
 class MotionFusion:
     """Which step goes into a frame when wheel speed and gyro are fed: the odometry's fused with
     theirs where the two agree, theirs alone where the odometry jumped or has no frame, and when
-    the engine must make a frame itself (no odometry frame for ``wheel_frame_gap_s``)."""
+    the engine must make a frame itself (no odometry frame for ``WHEEL_FRAME_GAP_S``)."""
 
     MIN_RATIO_STEP_M, MIN_RATIOS = 0.2, 5
     #: The odometry's scale against the calibrated wheel: over agreeing steps, forgetting with this
@@ -438,7 +448,7 @@ class MotionFusion:
             return None
         until = self.wg.covered_until
         since = self.last_odometry_t if self.last_odometry_t is not None else self._first_sample_t
-        if since is None or until - since <= self.cfg.wheel_frame_gap_s:
+        if since is None or until - since <= WHEEL_FRAME_GAP_S:
             return None
         if t_last is None:
             return until

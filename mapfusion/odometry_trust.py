@@ -28,6 +28,16 @@ from .errors import InputError
 
 __all__ = ["OdometryTrust", "OdometryTrustError", "drift_residual_m", "model_residual_m", "learn_factor"]
 
+#: Fixes a least-squares scale fit needs. Source: by measurement.
+SCALE_FIT_MIN_FIXES = 10
+
+#: The fit drops fixes farther than this many median σ (plus SCALE_FIT_OUTLIER_FLOOR_M) from a first fit. Source:
+#: by measurement.
+SCALE_FIT_OUTLIER_SIGMA = 3.0
+
+#: Added to the fit's outlier bound. Unit: m. Source: by measurement.
+SCALE_FIT_OUTLIER_FLOOR_M = 1.0
+
 
 class OdometryTrustError(InputError):
     """Inputs to the learned odometry σ that cannot describe a path and its fixes."""
@@ -128,20 +138,20 @@ def step_sigmas(cfg, length_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def from_window(cfg, track, alignment, fixes: list[tuple[float, float, float, float]]) -> OdometryTrust | None:
     """What the initialisation window's fixes say of the odometry's σ, or None with too few fixes or too little
-    motion to say it (fewer than ``scale_fit_min_fixes`` kept, a model residual under 1 mm)."""
+    motion to say it (fewer than ``SCALE_FIT_MIN_FIXES`` kept, a model residual under 1 mm)."""
     from .metrics import umeyama  # (numpy only; kept local like the fit's own use)
 
     lo, hi = track.t[track.first] - 0.5, track.t[-1] + 0.5
     g = np.array([f for f in fixes if lo <= f[0] <= hi]).reshape(-1, 4)
-    if len(g) < max(cfg.scale_fit_min_fixes, 5):
+    if len(g) < max(SCALE_FIT_MIN_FIXES, 5):
         return None
     o = np.array([track.raw_at(t).translation()[:2] for t in g[:, 0]])
     keep = np.ones(len(g), dtype=bool)
     for _ in range(2):  # the initialisation fit's outlier rule (Initialiser.fit)
         r, tr, sc = umeyama(o[keep], g[keep, 1:3], with_scale=True)
         resid = np.hypot(*(g[:, 1:3] - (sc * o @ r.T + tr)).T)
-        keep = resid <= cfg.scale_fit_outlier_sigma * np.median(g[:, 3]) + cfg.scale_fit_outlier_floor_m
-        if keep.sum() < max(cfg.scale_fit_min_fixes, 5):
+        keep = resid <= SCALE_FIT_OUTLIER_SIGMA * np.median(g[:, 3]) + SCALE_FIT_OUTLIER_FLOOR_M
+        if keep.sum() < max(SCALE_FIT_MIN_FIXES, 5):
             return None
     drift = drift_residual_m(resid[keep], g[keep, 3])
     drift_low = drift_residual_m(resid[keep], g[keep, 3], confidence=-2.0)

@@ -23,8 +23,21 @@ from .metrics import umeyama
 from .relocalise import RoadFollower
 from .roadmap import RoadMap
 from .track import JumpGuard, Track, level, spread_back
+from .factors import OUTAGE_ROT_SIGMA_DEG
 
 log = logging.getLogger(__name__)
+
+#: With outage_step = road: an estimate within its road's width (plus a lane) and heading along it within this is
+#: carried on the road itself (its heading becomes the road's); else by the road's own motion from where it is
+#: matched, its offset and heading error kept. Unit: deg. Source: issue 17: set60 Helsinki heavy rain s6 (37 m off
+#: before a 3 s gap: 17 -> 57 m when snapped).
+OUTAGE_ON_ROAD_DEG = 10.0
+
+#: The heading difference A in outage_end_weight_m_per_deg's D is counted up to this: ends further off the guess's
+#: heading than this are told apart by their position alone (the odometry's turn over a gap says roughly which way,
+#: not which of two roads both far off it). Unit: deg. Source: issue 17: heavy-rain Kotka s2 (a 65° turn inside a 2
+#: s gap the VO saw as 4°: uncapped, the end 165° off the truth won over the one 32° off by 4 m of D).
+OUTAGE_END_MAX_DEG = 45.0
 
 
 def placed_on(step: Callable[[int], gtsam.Pose3], k0: int, fixes, sigma: float,
@@ -99,7 +112,7 @@ class OutageCarry:
         # turned against it by the road's own motion from where it is matched (its offset kept: the map's
         # priors judge that)
         place = (m.edge, -1 if m.reversed else 1, m.along_m)
-        if m.lateral_m <= (0.5 * m.lanes + 1.0) * cfg.lane_width_m and m.angle_deg <= cfg.outage_on_road_deg:
+        if m.lateral_m <= (0.5 * m.lanes + 1.0) * cfg.lane_width_m and m.angle_deg <= OUTAGE_ON_ROAD_DEG:
             start = level(prev)
         else:
             x0, y0, yaw0 = follower.road_pose(*place)
@@ -108,7 +121,7 @@ class OutageCarry:
                                                                       0.0)))
         x, y, yaw = follower.follow(*place, length_m, (guess.x(), guess.y()), self.carried_sigma_m(length_m),
                                     target_yaw_rad=start.rotation().yaw() + 2.0 * half,
-                                    weight_m_per_deg=cfg.outage_end_weight_m_per_deg, max_deg=cfg.outage_end_max_deg)
+                                    weight_m_per_deg=cfg.outage_end_weight_m_per_deg, max_deg=OUTAGE_END_MAX_DEG)
         return start.between(gtsam.Pose3(gtsam.Rot3.Yaw(yaw), gtsam.Point3(x, y, start.z())))
 
     def note_outage(self, k: int, step: gtsam.Pose3) -> None:
@@ -152,7 +165,7 @@ class OutageCarry:
         moved_by = prev.compose(self.step_into(kg, prev, length_m)).compose(prev.compose(was_road).inverse())
         pose = level(moved_by.compose(now))
         sigma = max(est.pos_sigma_m, self.cfg.reloc_sigma_m)
-        noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, math.radians(self.cfg.outage_rot_sigma_deg),
+        noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, math.radians(OUTAGE_ROT_SIGMA_DEG),
                                                      sigma))
         est.restart_from(k, pose, noise, sigma)
         est.update()

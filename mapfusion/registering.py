@@ -23,6 +23,7 @@ from .register import register_on_roads
 from .relocalise import Region
 from .roadmap import RoadMap
 from .track import Track, planar_of
+from .gps_gate import RELOCALISE_YAW_SIGMA_FLOOR_DEG
 
 log = logging.getLogger(__name__)
 
@@ -192,7 +193,7 @@ class FixRegistration:
                  self.track.t[k], reg.points, reg.shift_m, reg.rms_m, reg.runner_up_rms_m)
         self.registered_fix_t = fixes[-1][0]
         k0 = placed[0][2]
-        yaw_sigma = math.radians(cfg.relocalise_yaw_sigma_floor_deg)
+        yaw_sigma = math.radians(RELOCALISE_YAW_SIGMA_FLOOR_DEG)
         sigma_m = max(reg.rms_m, 2.0)
         pose, placed_sigma_m = placed_on(self._estimate.step, k0, placed, sigma_m, yaw_sigma)
         was = self.track.online[k0]

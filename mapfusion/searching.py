@@ -24,6 +24,7 @@ from .registering import FixRegistration, MapAnchors
 from .relocalise import Guess, Located, Region, Relocaliser, Search, enclosing_disc
 from .roadmap import RoadMap
 from .track import Track, planar_of
+from .factors import OUTAGE_ROT_SIGMA_DEG
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +123,7 @@ class MapSearch:
     def _gap_guess(self, prev: gtsam.Pose3, pred: gtsam.Pose3) -> Guess | None:
         """The engine's own guess across an odometry gap (the step carried along the road from ``prev`` to
         ``pred``) as the gap's search's prior (``reloc_gap_guess_floor``; none at 1): σ as the carried step's
-        (``reloc_sigma_m`` + ``outage_step_fraction`` of its length) and ``outage_rot_sigma_deg``. Uniform over
+        (``reloc_sigma_m`` + ``outage_step_fraction`` of its length) and ``OUTAGE_ROT_SIGMA_DEG``. Uniform over
         the region, a search on long straight roads holds the right place with every other stretch of road in
         the region for hundreds of metres, while the estimate it should correct strays at the next junction."""
         cfg = self.cfg
@@ -130,7 +131,7 @@ class MapSearch:
             return None
         length_m = math.hypot(pred.x() - prev.x(), pred.y() - prev.y())
         return Guess(pred.x(), pred.y(), self._carry.carried_sigma_m(length_m),
-                     pred.rotation().yaw(), math.radians(cfg.outage_rot_sigma_deg), cfg.reloc_gap_guess_floor,
+                     pred.rotation().yaw(), math.radians(OUTAGE_ROT_SIGMA_DEG), cfg.reloc_gap_guess_floor,
                      (prev.x(), prev.y()) if cfg.reloc_gap_guess_along else None)
 
     def _still_open(self, region: Region, reach_m: float) -> Region:

@@ -25,6 +25,15 @@ from .track import Track
 
 log = logging.getLogger(__name__)
 
+#: ISAM2's relinearisation threshold (tangent-space step). Source: GTSAM's examples.
+RELINEARIZE_THRESHOLD = 0.01
+
+#: Yaw σ of the prior that re-anchors a fresh smoother after GTSAM failed. Unit: deg. Source: robustness.
+REANCHOR_YAW_SIGMA_DEG = 2.0
+
+#: x/y σ of that prior. Unit: m. Source: robustness.
+REANCHOR_SIGMA_M = 0.5
+
 
 class _Backend:
     """ISAM2 over the whole history, or GTSAM's incremental fixed-lag smoother."""
@@ -32,7 +41,7 @@ class _Backend:
     def __init__(self, cfg: FusionConfig) -> None:
         params = gtsam.ISAM2Params()
         params.setFactorization(cfg.factorization.value)
-        params.setRelinearizeThreshold(cfg.relinearize_threshold)
+        params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
         params.relinearizeSkip = 1
         self.fixed_lag = cfg.backend is Backend.fixed_lag
         # marginalised factors free their slots: reuse them, or ISAM2's factor list grows forever
@@ -224,7 +233,7 @@ class Smoother:
         self.backend = _Backend(cfg)
         g = gtsam.NonlinearFactorGraph()
         v = gtsam.Values()
-        sig = factors.pose_sigmas(StateModel.planar, math.radians(cfg.reanchor_yaw_sigma_deg), cfg.reanchor_sigma_m)
+        sig = factors.pose_sigmas(StateModel.planar, math.radians(REANCHOR_YAW_SIGMA_DEG), REANCHOR_SIGMA_M)
         g.add(factors.pose_prior(anchor_k, anchor, factors.diagonal(sig)))
         v.insert(X(anchor_k), anchor)
         stamps = {X(anchor_k): self.track.t[anchor_k]}

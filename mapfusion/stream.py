@@ -8,6 +8,8 @@ from collections.abc import Callable
 import gtsam
 
 from .config import FusionConfig
+from .gps_gate import RELOCALISE_WINDOW_S
+from .initialisation import SCALE_REFIT_WINDOW_S
 
 #: ``on_final(t, online, smoothed)``: a frame's time, its causal estimate and its smoothed pose
 #: (either None where the engine has none: before initialisation).
@@ -22,7 +24,7 @@ BATCH_FRAMES = 500
 
 def history_s(cfg: FusionConfig) -> float:
     """How long a frame is held before it is handed out and forgotten."""
-    return max(MIN_HISTORY_S, 2.0 * cfg.scale_refit_window_s, 4.0 * cfg.lag_s, 4.0 * cfg.relocalise_window_s)
+    return max(MIN_HISTORY_S, 2.0 * SCALE_REFIT_WINDOW_S, 4.0 * cfg.lag_s, 4.0 * RELOCALISE_WINDOW_S)
 
 
 class Release:

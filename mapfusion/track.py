@@ -2,10 +2,11 @@
 relative motions, and each frame's causal estimate in the map frame.
 
 Raw poses are the odometry as given (unscaled), composed from the relative motions; once the
-planar state levels the odometry frame they are stored levelled. With ``planar_steps = "level"`` (the
-default, :class:`LocalLevel`) or ``"body"`` (:func:`flatten`) each relative motion is first reduced to a
-planar step (x, y, yaw), so the raw chain is level by construction and no tilt of the odometry's own
-frame reaches it. :class:`Alignment` (from the GPS initialisation) takes a raw pose into the map frame.
+planar state levels the odometry frame they are stored levelled. The engine's planar track
+(:func:`track_for`) reduces each relative motion to a planar step (x, y, yaw) on the local horizontal
+(:class:`LocalLevel`; ``flat`` alone takes it in the body frame, :func:`flatten`), so the raw chain is
+level by construction and no tilt of the odometry's own frame reaches it. :class:`Alignment` (from the GPS
+initialisation) takes a raw pose into the map frame.
 """
 
 from __future__ import annotations
@@ -21,9 +22,23 @@ from typing import Generic, TypeVar
 import gtsam
 import numpy as np
 
-from .config import FusionConfig, OutageStep, PlanarSteps, StateModel
+from .config import FusionConfig, OutageStep, StateModel
 
 log = logging.getLogger(__name__)
+
+#: An odometry step implying more than this speed (scaled once initialised), and more than 20× the median of the
+#: last 50 steps', is a VO failure (a corrupt pose, a relocalisation to a wrong place): counted (odometry_jumps),
+#: logged and bridged with the last plausible motion, never followed. Unit: m/s. Source: issue 19: 70 m/s = 252
+#: km/h, beyond any road vehicle; an impossible jump of 10,000 km was fused as motion.
+MAX_ODOMETRY_SPEED_MPS = 70.0
+
+#: The window over which the body's up axis is averaged into the local vertical. Unit: s.
+#: Source: roads are level over a minute of driving.
+LEVEL_WINDOW_S = 60.0
+
+#: An odometry step spanning more than this is an outage: its σ is at least outage_step_fraction of its length and
+#: OUTAGE_ROT_SIGMA_DEG. Unit: s. Source: a re-initialised VO guesses the motion it did not see.
+OUTAGE_S = 1.0
 T = TypeVar("T")
 
 
@@ -463,9 +478,8 @@ class LeverArm:
 
 def track_for(cfg: FusionConfig, odometry_rate_hz: float) -> Track:
     """The engine's track for a configuration: its state model and how planar steps are taken."""
-    level = LocalLevel(round(cfg.level_window_s * odometry_rate_hz), cfg.outage_s) \
-        if cfg.planar_steps is PlanarSteps.level else None
-    return Track(cfg.state, 1.0 / odometry_rate_hz, flat=cfg.planar_steps is PlanarSteps.body, level=level,
+    level = LocalLevel(round(LEVEL_WINDOW_S * odometry_rate_hz), OUTAGE_S)
+    return Track(cfg.state, 1.0 / odometry_rate_hz, level=level,
                  nonholonomic=cfg.odometry_nonholonomic, slip_rad=math.radians(cfg.odometry_slip_deg))
 
 
@@ -494,7 +508,7 @@ class JumpGuard:
     @classmethod
     def for_config(cls, cfg: FusionConfig) -> JumpGuard:
         """The engine's guard: gaps bridged by the last velocity unless ``outage_step`` is the odometry's own."""
-        return cls(cfg.max_odometry_speed_mps, math.inf if cfg.outage_step is OutageStep.odometry else cfg.reloc_gap_s)
+        return cls(MAX_ODOMETRY_SPEED_MPS, math.inf if cfg.outage_step is OutageStep.odometry else cfg.reloc_gap_s)
 
     def check(self, t: float, rel: gtsam.Pose3, scale: float | None) -> tuple[gtsam.Pose3, bool]:
         """The step to use into the frame at ``t``, and whether ``rel`` was an impossible jump."""
