@@ -283,6 +283,19 @@ _FIXED_KEYS: dict[str, str] = {
     "outage_rot_sigma_deg": "mapfusion.factors.OUTAGE_ROT_SIGMA_DEG = 20.0 deg",
     "wheel_frame_gap_s": "mapfusion.motion.WHEEL_FRAME_GAP_S = 0.3 s",
     "wheel_scale_window_s": "mapfusion.motion.WHEEL_SCALE_WINDOW_S = 300.0 s",
+    "reloc_seed": "mapfusion.relocalise.RELOC_SEED = 0",
+    "reloc_give_up_m": "mapfusion.relocalise.RELOC_GIVE_UP_M = 1500.0 m",
+    "reloc_radius_m": "mapfusion.relocalise.RELOC_RADIUS_M = 300.0 m",
+    "reloc_radius_per_m": "mapfusion.relocalise.RELOC_RADIUS_PER_M = 1.0 m/m",
+    "road_fix_uturn_probability": "mapfusion.relocalise.ROAD_FIX_UTURN_PROBABILITY = 0.02",
+    "reloc_register_m": "mapfusion.registering.RELOC_REGISTER_M = 1000.0 m",
+    "reloc_gap_margin_m": "mapfusion.searching.RELOC_GAP_MARGIN_M = 100.0 m",
+    "reloc_gap_guess_floor": "mapfusion.searching.RELOC_GAP_GUESS_FLOOR = 0.05",
+    "road_fix_after_gps_s": "mapfusion.tracking.ROAD_FIX_AFTER_GPS_S = 2.0 s",
+    "road_fix_hold_m": "mapfusion.tracking.ROAD_FIX_HOLD_M = 50.0 m",
+    "road_fix_gate_sigma": "mapfusion.tracking.ROAD_FIX_GATE_SIGMA = 5.0",
+    "road_fix_cluster_m": "mapfusion.tracking.ROAD_FIX_CLUSTER_M = 25.0 m",
+    "road_fix_kld_epsilon": "mapfusion.tracking.ROAD_FIX_KLD_EPSILON = 0.05",
     "planar_steps": "level (mapfusion.track.track_for: body and world were measured worse)",
 }
 
@@ -761,12 +774,6 @@ class FusionConfig:
                                        source="issue 17; by measurement")
     reloc_min_distance_m: float = param(100.0, "Driving before a re-localisation may converge.", unit="m", min=0.0,
                                         max=100000.0, source="issue 17; by measurement")
-    reloc_radius_m: float = param(300.0, "Radius of the search region around the estimate where a road last explained "
-                                  "it, when lost (and around the estimate when GPS falls silent).",
-                                  unit="m", min=1.0, max=100000.0, source="issue 17")
-    reloc_radius_per_m: float = param(1.0, "Growth of that radius per metre driven since a road last explained "
-                                      "the estimate.", unit="m/m", min=0.0, max=10.0,
-                                      source="issue 17: the vehicle is at most that far from there")
     reloc_max_radius_m: float = param(2000.0, "Largest search region.", unit="m", min=1.0, max=100000.0,
                                       source="issue 17: 2 km in a city at 10 Hz on one core")
     reloc_confirm_m: float = param(5.0, "A re-localisation within this distance of the current estimate only "
@@ -848,9 +855,6 @@ class FusionConfig:
                                           max=100000.0, source="issue 17: kidnapped GPS bias Kotka s7 "
                                           "(25 m/s), 2 s after the last fix 7.1 m off with 10 s of fixes, 10.7 m with "
                                           "60 s; Helsinki s9, 10 s of fixes at a standstill turned the estimate 138°")
-    reloc_register_m: float = param(1000.0, "Length of the fixes' path registered on the roads (reloc_register_ratio),"
-                                    " back from the last fix.", unit="m", min=1.0, max=100000.0,
-                                    source="issue 17: the kidnapped family's fix windows (120 s, 250-900 m)")
     reloc_register_rms_m: float = param(4.0, "Largest RMS distance (each capped at 10 m) of the shifted fixes to "
                                         "the roads' way-points for the registration to act.", unit="m", min=0.0,
                                         max=10.0, source="issue 17: 2.1-3.0 m on the kidnapped seeds 1-10's windows "
@@ -908,9 +912,6 @@ class FusionConfig:
         "such a correction was never made (false: counted in full).",
         source="issue 17 (kidnapped VO jumps: steps carried across the gap 15–60 m along the road stayed so)",
     )
-    reloc_give_up_m: float = param(1500.0, "A search not converged after this much driving starts again around the "
-                                   "estimate with twice the radius.", unit="m", min=10.0, max=1000000.0,
-                                   source="issue 17")
     reloc_gap_s: float = param(2.0, "An odometry gap longer than this (the VO lost track and re-initialised) opens "
                                "the GPS gate (two agreeing fixes re-anchor, back to the gap), takes the step across "
                                "it along the road (outage_step) and, with map_relocalisation, starts a search "
@@ -919,10 +920,6 @@ class FusionConfig:
                                "took the simulated VO's 2-3 s re-initialisations (it re-matches gaps up to 2 s) "
                                "for bridged, and a 2.3 s one's guessed turn lost Kotka heavy rain s2 (208 m; 4.8 m "
                                "at 2 s): 60 runs seeds 1-10 10.61 -> 7.35 m, held-out 11-20 6.30 -> 6.32 m")
-    reloc_gap_margin_m: float = param(100.0, "Radius of the search after an odometry gap beyond the distance the "
-                                      "vehicle may have driven through it (the estimate before the gap was good to "
-                                      "about this).", unit="m", min=0.0, max=100000.0,
-                                      source="issue 17: a smaller region holds fewer look-alike paths")
     reloc_gap_speed_mps: float = param(15.0, "Speed assumed through such a gap: the search region's radius is "
                                        "reloc_gap_margin_m + this × the gap, and the opened GPS gate's σ at least "
                                        "this × the gap.",
@@ -936,16 +933,6 @@ class FusionConfig:
         source="issue 17: rain-tunnel Andorra vo s2 drove 27 m/s in a 106 s tunnel gap carried at "
                "19-25 m/s; its search's 2,612 m region ended 300 m short of the vehicle and converged on a look-alike "
                "860 m off",
-    )
-    reloc_gap_guess_floor: float = param(
-        0.05,
-        "The search begun after an odometry gap starts from the engine's own guess (the step carried along the "
-        "road, outage_step): its particles weighted floor + (1 − floor) × a Gaussian around that pose (σ of the "
-        "carried step: reloc_sigma_m + outage_step_fraction × its length, and outage_rot_sigma_deg), so that "
-        "places the guess rules out keep this share of the weight; 1: uniform over the region.",
-        min=0.0, max=1.0,
-        source="issue 17 (kidnapped VO jumps: carried steps 2–50 m off in most runs, while a uniform search took "
-               "600–1,000 m of Kotka's long roads to converge)",
     )
     reloc_gap_guess_along: bool = param(
         True,
@@ -975,27 +962,17 @@ class FusionConfig:
                                    max=20.0, source="issue 21; by measurement")
     reloc_particles_min: int = param(500, "Fewest particles an adaptive count keeps.", min=1, max=2_000_000,
                                      source="issue 21")
-    reloc_seed: int = param(0, "Seed of the re-localisation's random numbers (runs are reproducible); with the "
-                            "frame a search begins at, it seeds that search, whose draws then do not depend on the "
-                            "searches before it.", min=0,
-                            max=2**31 - 1, source="reproducibility")
     road_fixes: bool = param(True, "While GPS is silent, road-network particles (the re-localisation's, the "
                              "odometry's scale a state of each) follow the vehicle from the estimate, and their "
                              "confident position enters the graph as a fix: the map's own answer to where the "
                              "vehicle is, from the odometry's shape over many junctions, independent of the "
                              "estimate's single road association.", source="issue 16 items 3-4, issue 17 (Lost!)")
-    road_fix_kld_epsilon: float = param(0.05, "reloc_kld_epsilon for the road fixes' particles: once they agree on "
-                                        "one place they need far fewer than it took to find it.", min=0.0, max=1.0,
-                                        source="issue 21; by measurement")
     road_fix_particles: int = param(20000, "reloc_particles for the road fixes' particles: the most a start spreads "
                                     "over its region's roads (before the scale bands multiply it); a region grown "
                                     "by a long stretch without a fix is covered more thinly instead of costing "
                                     "more.", min=10, max=2_000_000,
                                     source="issue 21: 60-run sets, 60000 / 20000 / 8000: seeds 1-10 7.35 / 7.21 / "
                                     "8.10 m, fusion 132 / 122 / 116 s; held-out 11-20 6.32 / 6.32 m, 135 / 122 s")
-    road_fix_after_gps_s: float = param(2.0, "The particles start when no GPS fix was used for this long; a used fix "
-                                        "stops them.", unit="s", min=0.0, exclusive_min=True, max=86400.0,
-                                        source="GPS places the estimate better while it comes")
     road_fix_radius_m: float = param(50.0, "Radius of the region around the estimate the particles start in (at "
                                      "least 3 × the estimate's positional σ).", unit="m", min=1.0, max=100000.0,
                                      source="issue 16; by measurement")
@@ -1012,16 +989,10 @@ class FusionConfig:
                                     source="issue 16; by measurement")
     road_fix_min_mass: float = param(0.8, "Posterior mass within road_fix_cluster_m a fix needs.", min=0.0,
                                      exclusive_min=True, max=1.0, source="issue 16; as reloc_converge_mass")
-    road_fix_cluster_m: float = param(25.0, "Radius of the disc whose mass decides a fix.", unit="m", min=0.1,
-                                      max=10000.0, source="as reloc_converge_radius_m")
     road_fix_restart_m: float = param(300.0, "Particles that gave no confident answer over this much driving start "
                                       "again around the estimate (a posterior spread for long gathers again on "
                                       "look-alike roads far away).", unit="m", min=1.0, max=1e6,
                                       source="issue 16; real TrianFlow on KITTI 01")
-    road_fix_hold_m: float = param(50.0, "A new answer (after a start, or after a step without one) is a fix only "
-                                   "once it has been confident and continuous over this much driving.", unit="m",
-                                   min=0.0, max=100000.0,
-                                   source="issue 16: Helsinki rain seed 2 (one answer 190 m off after a restart)")
     road_fix_agree_m: float = param(20.0, "No fix while the estimate lies on a road (within road_fix_agree_widths "
                                     "of its centre line, its heading within prior_max_angle_deg) this close to the "
                                     "particles' answer: a right estimate is not pulled to the particles' own errors "
@@ -1048,11 +1019,6 @@ class FusionConfig:
                                            "(the vehicle turned where a particle went straight) is not absorbed.",
                                            unit="deg", min=0.0, max=180.0,
                                            source="issue 16: Helsinki seed 5 (90° absorbed in five steps)")
-    road_fix_uturn_probability: float = param(0.02, "Probability that a road fix particle on a two-way road turns "
-                                              "back in one step: vehicles turn back (SUMO's routes at dead ends and "
-                                              "junctions), and particles that cannot are all wrong after it.",
-                                              min=0.0, max=1.0, source="issue 16: Helsinki seed 5 turns back at "
-                                              "253 s")
     road_fix_scale_gain: float = param(0.02, "Each road fix moves the engine's odometry scale this fraction of the way "
                                        "(in log) to the fix's cluster's scale: the map keeps observing the scale "
                                        "after GPS ends (0: the scale GPS measured stays).", min=0.0, max=1.0,
@@ -1068,10 +1034,6 @@ class FusionConfig:
                                   "gate's allowance since its last answer, and a restart's radius (× 3) since the "
                                   "last fix (GPS's or a road fix).", min=0.0,
                                   max=10.0, source="issue 16; real TrianFlow drifts 10-12% (KITTI t_err)")
-    road_fix_gate_sigma: float = param(5.0, "An answer that moved, since the last one, farther from where the "
-                                       "estimate moved than this × the combined σ (the answer's spread, the drift) "
-                                       "is not a fix (0: no gate).", min=0.0, max=1000.0,
-                                       source="issue 16: never make a drive worse")
     road_fix_heading_sigma_deg: float = param(
         0.0, "The particles start weighted by the estimate's heading: a Gaussian of this σ (or 3 × the smoother's "
         "marginal yaw σ, when larger) in the angle between each particle's heading (its road's, in its direction) "

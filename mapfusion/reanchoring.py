@@ -24,6 +24,7 @@ from .relocalise import RoadFollower
 from .roadmap import RoadMap
 from .track import JumpGuard, Track, level, spread_back
 from .factors import OUTAGE_ROT_SIGMA_DEG
+from .relocalise import RELOC_SEED
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +90,7 @@ class OutageCarry:
         if self._follower is None:
             # (it follows the road the estimate is on: turning back at a vertex is a search's hypothesis, not a guess)
             self._follower = RoadFollower(self.road, dataclasses.replace(cfg, reloc_uturn_at_vertex=0.0),
-                                          cfg.reloc_seed)
+                                          RELOC_SEED)
         tr = step.translation()
         guessed_m = math.sqrt(tr.dot(tr))
         if length_m is None:

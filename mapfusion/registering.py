@@ -24,8 +24,13 @@ from .relocalise import Region
 from .roadmap import RoadMap
 from .track import Track, planar_of
 from .gps_gate import RELOCALISE_YAW_SIGMA_FLOOR_DEG
+from .relocalise import RELOC_RADIUS_M
 
 log = logging.getLogger(__name__)
+
+#: Length of the fixes' path registered on the roads (reloc_register_ratio), back from the last fix. Unit: m.
+#: Source: issue 17: the kidnapped family's fix windows (120 s, 250-900 m).
+RELOC_REGISTER_M = 1000.0
 
 
 class MapAnchors:
@@ -153,13 +158,13 @@ class FixRegistration:
         return beside_gps or cfg.reloc_register_on_roads or not self._association.kept_to_roads()
 
     def _window(self) -> tuple[list[tuple[float, float, float]], float]:
-        """The fixes (t, x, y) of the last ``reloc_register_m`` of GPS's path, and that path's length."""
+        """The fixes (t, x, y) of the last ``RELOC_REGISTER_M`` of GPS's path, and that path's length."""
         fixes: list[tuple[float, float, float]] = []
         length_m = 0.0
         for t, x, y, _ in reversed(self._initialiser.fixes):
             if fixes:
                 length_m += math.hypot(x - fixes[-1][1], y - fixes[-1][2])
-                if length_m > self.cfg.reloc_register_m:
+                if length_m > RELOC_REGISTER_M:
                     break
             fixes.append((t, x, y))
         fixes.reverse()
@@ -167,7 +172,7 @@ class FixRegistration:
 
     def register(self, k: int, pred: gtsam.Pose3) -> bool:
         """GPS has fallen silent (where it left the estimate off the roads, or anywhere with
-        ``reloc_register_on_roads``): its fixes of the last ``reloc_register_m`` registered on the roads
+        ``reloc_register_on_roads``): its fixes of the last ``RELOC_REGISTER_M`` registered on the roads
         (:func:`~mapfusion.register.register_on_roads`, ``reloc_register_ratio``). When the shift is decisive, the
         odometry of the last ``reloc_register_place_m`` of fixes is placed on them, shifted, by a rigid fit (as a GPS
         re-localisation places it; not the estimate moved: after a biased window its heading may be off too), the
@@ -175,7 +180,7 @@ class FixRegistration:
         cfg = self.cfg
         fixes, length_m = self._window()
         sep = cfg.reloc_register_separation_m
-        reg = register_on_roads(self.road, np.array([f[1:] for f in fixes]).reshape(-1, 2), cfg.reloc_radius_m,
+        reg = register_on_roads(self.road, np.array([f[1:] for f in fixes]).reshape(-1, 2), RELOC_RADIUS_M,
                                 separation_m=sep)
         if reg is None or not reg.decisive(cfg.reloc_register_ratio, cfg.reloc_register_rms_m, sep):
             if reg is not None:
@@ -199,7 +204,7 @@ class FixRegistration:
         was = self.track.online[k0]
         assert was is not None
         self._anchors.reanchor(k0, was, pose, placed_sigma_m, yaw_sigma, self._anchors.replay_start(k, length_m),
-                               Region(pred.x(), pred.y(), cfg.reloc_radius_m), 0.0, k, (placed, sigma_m))
+                               Region(pred.x(), pred.y(), RELOC_RADIUS_M), 0.0, k, (placed, sigma_m))
         return True
 
     def _fixes_on_frames(self, fixes: list[tuple[float, float, float]], k: int) -> list[tuple[float, float, int]]:

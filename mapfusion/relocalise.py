@@ -46,6 +46,27 @@ log = logging.getLogger(__name__)
 
 __all__ = ["Region", "Located", "RoadParticles", "Relocaliser", "enclosing_disc", "kld_count"]
 
+#: Seed of the re-localisation's random numbers (runs are reproducible); with the frame a search begins at, it
+#: seeds that search, whose draws then do not depend on the searches before it. Source: reproducibility.
+RELOC_SEED = 0
+
+#: A search not converged after this much driving starts again around the estimate with twice the radius. Unit: m.
+#: Source: issue 17.
+RELOC_GIVE_UP_M = 1500.0
+
+#: Radius of the search region around the estimate where a road last explained it, when lost (and around the
+#: estimate when GPS falls silent). Unit: m. Source: issue 17.
+RELOC_RADIUS_M = 300.0
+
+#: Growth of that radius per metre driven since a road last explained the estimate. Unit: m/m. Source: issue 17:
+#: the vehicle is at most that far from there.
+RELOC_RADIUS_PER_M = 1.0
+
+#: Probability that a road fix particle on a two-way road turns back in one step: vehicles turn back (SUMO's routes
+#: at dead ends and junctions), and particles that cannot are all wrong after it. Source: issue 16: Helsinki seed 5
+#: turns back at 253 s.
+ROAD_FIX_UTURN_PROBABILITY = 0.02
+
 #: Vertices a particle may pass in one step (a step longer than this many short edges stops at the last).
 MAX_HOPS = 16
 
@@ -641,9 +662,9 @@ class Search:
               guess: Guess | None = None) -> None:
         """Start a search in ``region`` (a new one replaces any running, and ends any watched); its particles'
         scales spread over ``scale_range`` (map metres per odometry unit), their first weights from ``guess``
-        if given. ``frame``: the engine's frame it begins at, which seeds it (with ``reloc_seed``), so that a
+        if given. ``frame``: the engine's frame it begins at, which seeds it (with ``RELOC_SEED``), so that a
         search's draws do not depend on how many searches came before it (without: the count so far does)."""
-        seed: int | list[int] = self.cfg.reloc_seed + self.searches if frame is None else [self.cfg.reloc_seed, frame]
+        seed: int | list[int] = RELOC_SEED + self.searches if frame is None else [RELOC_SEED, frame]
         self.active = Relocaliser(self.road, self.cfg, region, seed, scale_range, guess)
         self.watching = None
         self.searches += 1
@@ -669,7 +690,7 @@ class Search:
             self._watch_until_m = search.particles.driven_m + self.cfg.reloc_watch_m
             # a search's particles never turn back (over its few hundred metres the vehicle rarely does); followed
             # for longer, a vehicle that turns back kills the right cluster: watched, they may, as the road fixes' do
-            search.particles.allow_uturns(self.cfg.road_fix_uturn_probability)
+            search.particles.allow_uturns(ROAD_FIX_UTURN_PROBABILITY)
 
     def watched(self, x_m: float, y_m: float, yaw_rad: float, frame: int | None = None) -> Located | None:
         """One odometry pose (as :meth:`feed`) for the watched search; its converged answer, or None. Watching
@@ -683,10 +704,10 @@ class Search:
         return loc
 
     def widen_if_stuck(self, x_m: float, y_m: float, frame: int | None = None) -> None:
-        """A search that has not converged over ``reloc_give_up_m`` starts again around (x, y) with twice
+        """A search that has not converged over ``RELOC_GIVE_UP_M`` starts again around (x, y) with twice
         its radius (up to ``reloc_max_radius_m``): the vehicle may have left the region."""
         a = self.active
-        if a is not None and a.particles.driven_m >= self.cfg.reloc_give_up_m:
+        if a is not None and a.particles.driven_m >= RELOC_GIVE_UP_M:
             self.begin(Region(x_m, y_m, min(2.0 * a.region.radius_m, self.cfg.reloc_max_radius_m)), a.scale_range,
                        frame)
 
@@ -694,7 +715,7 @@ class Search:
         """Where to look when lost: around the estimate where a road last explained it (``x_m``, ``y_m``), the
         radius grown with the distance driven since (the vehicle is at most that far from there)."""
         cfg = self.cfg
-        return Region(x_m, y_m, min(cfg.reloc_radius_m + cfg.reloc_radius_per_m * unexplained_m,
+        return Region(x_m, y_m, min(RELOC_RADIUS_M + RELOC_RADIUS_PER_M * unexplained_m,
                                     cfg.reloc_max_radius_m))
 
     def feed(self, x_m: float, y_m: float, yaw_rad: float, frame: int | None = None) -> Located | None:

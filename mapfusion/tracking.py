@@ -8,20 +8,20 @@ from wrong roads. The particles keep many places and scales at once, each weighe
 odometry's shape since the start fits the roads it would have driven (:class:`~mapfusion.relocalise.
 RoadParticles`): their answer does not depend on the estimate, so it can pull a lost estimate back.
 They start on the roads within ``road_fix_radius_m`` (at least 3 σ) of the estimate when no GPS fix
-was used for ``road_fix_after_gps_s``, their scales log-uniform within the estimate's scale ×/÷
+was used for ``ROAD_FIX_AFTER_GPS_S``, their scales log-uniform within the estimate's scale ×/÷
 ``road_fix_scale_factor`` and walking (``reloc_scale_walk``) — the map observes the scale as it
-observes the place. Every ``road_fix_every_m`` of driving, when one disc of ``road_fix_cluster_m``
+observes the place. Every ``road_fix_every_m`` of driving, when one disc of ``ROAD_FIX_CLUSTER_M``
 holds ``road_fix_min_mass`` of the posterior, its pose is a fix: σ its spread (at least
 ``road_fix_sigma_m``; Gaussian: under the map priors' robust kernel a fix far from a lost estimate
 would be too weak to pull it back, and the posterior's mass already weighed the roads), and not added
-unless it moved as the estimate did since the last one (``road_fix_gate_sigma``, ``road_fix_drift``), and
+unless it moved as the estimate did since the last one (``ROAD_FIX_GATE_SIGMA``, ``road_fix_drift``), and
 not while the estimate lies on a road within ``road_fix_agree_m`` of it (a right estimate is not pulled
 to the particles' own errors), nor, farther, while the particles still hold ``road_fix_rival_mass`` of their
 posterior near it (they preferred another place without ruling its own out). A new answer (after a start,
-or a step without one) must first hold, confident and continuous, over ``road_fix_hold_m``. Particles that
+or a step without one) must first hold, confident and continuous, over ``ROAD_FIX_HOLD_M``. Particles that
 give no confident answer over ``road_fix_restart_m`` start again around the estimate: a posterior spread
 for long gathers again on look-alike roads far away. A used GPS fix stops them. Their number adapts to
-how settled the posterior is (``road_fix_kld_epsilon``: KLD-sampling), and a start spreads at most
+how settled the posterior is (``ROAD_FIX_KLD_EPSILON``: KLD-sampling), and a start spreads at most
 ``road_fix_particles`` (per scale band) however large its region.
 """
 
@@ -39,7 +39,7 @@ from . import factors
 from .config import FusionConfig
 from .counters import Counters
 from .estimate import Estimate
-from .relocalise import Guess, Located, Region, RoadParticles
+from .relocalise import RELOC_SEED, ROAD_FIX_UTURN_PROBABILITY, Guess, Located, Region, RoadParticles
 from .roadmap import RoadMap
 from .track import planar_of
 
@@ -47,16 +47,36 @@ log = logging.getLogger(__name__)
 
 __all__ = ["RoadFixes", "particle_config"]
 
+#: The particles start when no GPS fix was used for this long; a used fix stops them. Unit: s. Source: GPS places
+#: the estimate better while it comes.
+ROAD_FIX_AFTER_GPS_S = 2.0
+
+#: A new answer (after a start, or after a step without one) is a fix only once it has been confident and
+#: continuous over this much driving. Unit: m. Source: issue 16: Helsinki rain seed 2 (one answer 190 m off after a
+#: restart).
+ROAD_FIX_HOLD_M = 50.0
+
+#: An answer that moved, since the last one, farther from where the estimate moved than this × the combined σ (the
+#: answer's spread, the drift) is not a fix (0: no gate). Source: issue 16: never make a drive worse.
+ROAD_FIX_GATE_SIGMA = 5.0
+
+#: Radius of the disc whose mass decides a fix. Unit: m. Source: as reloc_converge_radius_m.
+ROAD_FIX_CLUSTER_M = 25.0
+
+#: reloc_kld_epsilon for the road fixes' particles: once they agree on one place they need far fewer than it took
+#: to find it. Source: issue 21; by measurement.
+ROAD_FIX_KLD_EPSILON = 0.05
+
 
 def particle_config(cfg: FusionConfig) -> FusionConfig:
     """The road fixes' particles' own view of the configuration: no distance before an answer (they start
     where the vehicle is), the fix's disc and mass, their offsets and turns back, their adaptive count and
     the start's cap."""
-    return dataclasses.replace(cfg, reloc_min_distance_m=0.0, reloc_converge_radius_m=cfg.road_fix_cluster_m,
+    return dataclasses.replace(cfg, reloc_min_distance_m=0.0, reloc_converge_radius_m=ROAD_FIX_CLUSTER_M,
                                reloc_converge_mass=cfg.road_fix_min_mass,
                                reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
-                               reloc_uturn_probability=cfg.road_fix_uturn_probability, reloc_uturn_at_vertex=0.0,
-                               reloc_kld_epsilon=cfg.road_fix_kld_epsilon, reloc_particles=cfg.road_fix_particles)
+                               reloc_uturn_probability=ROAD_FIX_UTURN_PROBABILITY, reloc_uturn_at_vertex=0.0,
+                               reloc_kld_epsilon=ROAD_FIX_KLD_EPSILON, reloc_particles=cfg.road_fix_particles)
 
 
 class RoadFixes:
@@ -136,7 +156,7 @@ class RoadFixes:
         frame k, or None."""
         cfg = self.cfg
         self._near_only = near_only
-        silent = t - self.last_gps_t >= cfg.road_fix_after_gps_s
+        silent = t - self.last_gps_t >= ROAD_FIX_AFTER_GPS_S
         if not (self.enabled and silent and math.isfinite(scale) and scale > 0):
             return None
         x, y, yaw = raw_xy_yaw
@@ -174,10 +194,10 @@ class RoadFixes:
         # may lie anywhere in), the answer has moved as the estimate has, within what the odometry may have
         # drifted — a posterior that jumps to another road, or runs off where the vehicle turned, is not a fix
         gated = False
-        if loc is not None and cfg.road_fix_gate_sigma > 0:
+        if loc is not None and ROAD_FIX_GATE_SIGMA > 0:
             fx, fy, px, py = self._ref
             ex, ey = loc.x_m - (fx + pred.x() - px), loc.y_m - (fy + pred.y() - py)
-            tolerance = self._ref_slack_m + cfg.road_fix_gate_sigma * math.hypot(sigma, cfg.road_fix_drift *
+            tolerance = self._ref_slack_m + ROAD_FIX_GATE_SIGMA * math.hypot(sigma, cfg.road_fix_drift *
                                                                                  self._since_ref_m)
             gated = math.hypot(ex, ey) > tolerance
         if loc is None or gated:
@@ -189,7 +209,7 @@ class RoadFixes:
             return None
         held, self._held_m = self._held_m, self._held_m + self._since_fix_m
         self._since_fix_m = self._unsure_m = self._since_ref_m = self._ref_slack_m = 0.0
-        if held < cfg.road_fix_hold_m:  # a new answer holds, moving as the estimate does, before it is a fix
+        if held < ROAD_FIX_HOLD_M:  # a new answer holds, moving as the estimate does, before it is a fix
             self._ref, self._ref_pending = (loc.x_m, loc.y_m, pred.x(), pred.y()), False
             return None
         self._unfixed_m = 0.0
@@ -217,13 +237,13 @@ class RoadFixes:
 
     def _rival_mass(self, loc: Located, pred: gtsam.Pose3) -> float:
         """The particles' posterior mass within road_fix_agree_m / 2 of the estimate, outside the answer's own
-        disc (road_fix_cluster_m)."""
+        disc (ROAD_FIX_CLUSTER_M)."""
         p, cfg = self.particles, self.cfg
         if p is None or len(p) == 0:
             return 0.0
         xy = p.positions()
         near = (np.hypot(xy[:, 0] - pred.x(), xy[:, 1] - pred.y()) <= 0.5 * cfg.road_fix_agree_m) & \
-            (np.hypot(xy[:, 0] - loc.x_m, xy[:, 1] - loc.y_m) > cfg.road_fix_cluster_m)
+            (np.hypot(xy[:, 0] - loc.x_m, xy[:, 1] - loc.y_m) > ROAD_FIX_CLUSTER_M)
         return float(np.exp(p.logw[near]).sum())
 
     def _steady(self, x: float, y: float, yaw: float, scale: float) -> bool:
@@ -248,7 +268,7 @@ class RoadFixes:
                yaw_sigma_rad: float = math.inf) -> None:
         cfg = self.cfg
         if self._filter is None:  # (one filter, started afresh each time: its exits table is built once)
-            self._filter = RoadParticles(self.road, particle_config(cfg), cfg.reloc_seed)
+            self._filter = RoadParticles(self.road, particle_config(cfg), RELOC_SEED)
         self.particles, self._after_reanchoring = self._filter, False
         f = cfg.road_fix_scale_factor
         # around the estimate, as far as it may be off: its marginal's 3 σ, or 3 × what the odometry may have
