@@ -26,7 +26,7 @@ def main(steps: int = 150) -> None:
     road = RoadMap.from_osm(resolve_map("helsinki"))
     # the road fixes' own view of the filter, at a fixed count (no KLD-sampling) and the start's count as
     # when this benchmark was written (its answers' hash stays comparable across checkouts)
-    cfg = dataclasses.replace(particle_config(FusionConfig()), reloc_kld_epsilon=0.0, reloc_particles=60000)
+    cfg = dataclasses.replace(particle_config(FusionConfig()), kld_epsilon=0.0, particles=60000)
     p = RoadParticles(road, cfg, 0)
     p.start(Region(81.0, -429.0, 182.0), 0.3, scale_range=(1 / 1.3, 1.3))
     answers = []

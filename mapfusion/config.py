@@ -296,6 +296,25 @@ _FIXED_KEYS: dict[str, str] = {
     "road_fix_gate_sigma": "mapfusion.tracking.ROAD_FIX_GATE_SIGMA = 5.0",
     "road_fix_cluster_m": "mapfusion.tracking.ROAD_FIX_CLUSTER_M = 25.0 m",
     "road_fix_kld_epsilon": "mapfusion.tracking.ROAD_FIX_KLD_EPSILON = 0.05",
+    "reloc_particles": "mapfusion.relocalise.ParticleParams.particles = 60000",
+    "reloc_particles_per_m": "mapfusion.relocalise.ParticleParams.particles_per_m = 10.0 1/m",
+    "reloc_particles_min": "mapfusion.relocalise.ParticleParams.particles_min = 500",
+    "reloc_kld_epsilon": "mapfusion.relocalise.ParticleParams.kld_epsilon = 0.0",
+    "reloc_kld_bin_m": "mapfusion.relocalise.ParticleParams.kld_bin_m = 5.0 m",
+    "reloc_step_m": "mapfusion.relocalise.ParticleParams.step_m = 5.0 m",
+    "reloc_sigma_m": "mapfusion.relocalise.ParticleParams.sigma_m = 1.5 m",
+    "reloc_sigma_per_m": "mapfusion.relocalise.ParticleParams.sigma_per_m = 0.15 m/m",
+    "reloc_scale_sigma": "mapfusion.relocalise.ParticleParams.scale_sigma = 0.03",
+    "reloc_scale_walk": "mapfusion.relocalise.ParticleParams.scale_walk = 0.005",
+    "reloc_along_sigma_m": "mapfusion.relocalise.ParticleParams.along_sigma_m = 0.5 m",
+    "reloc_offset_gain": "mapfusion.relocalise.ParticleParams.offset_gain = 0.2",
+    "reloc_offset_sigma_deg": "mapfusion.relocalise.ParticleParams.offset_sigma_deg = 0.3 deg",
+    "reloc_offset_max_deg": "mapfusion.relocalise.ParticleParams.offset_max_deg = 180.0 deg",
+    "reloc_uturn_probability": "mapfusion.relocalise.ParticleParams.uturn_probability = 0.0",
+    "reloc_uturn_at_vertex": "mapfusion.relocalise.ParticleParams.uturn_at_vertex = 0.1",
+    "reloc_converge_radius_m": "mapfusion.relocalise.ParticleParams.converge_radius_m = 25.0 m",
+    "reloc_converge_mass": "mapfusion.relocalise.ParticleParams.converge_mass = 0.8",
+    "reloc_min_distance_m": "mapfusion.relocalise.ParticleParams.min_distance_m = 100.0 m",
     "planar_steps": "level (mapfusion.track.track_for: body and world were measured worse)",
 }
 
@@ -728,52 +747,12 @@ class FusionConfig:
     map_relocalisation: bool = param(False, "When the estimate is lost (no road explains it for lost_after_m), "
                                      "re-localise it on the road network from the odometry's shape alone and "
                                      "re-anchor the smoother there.", source="issue 17 (Brubaker et al. 2013, Lost!)")
-    reloc_particles: int = param(60000, "Particles of the global re-localisation, spread over the region's roads.",
-                                 min=10, max=2_000_000, source="issue 17; speed (10 Hz on one core, 2 km radius)")
-    reloc_step_m: float = param(5.0, "Odometry distance between two re-localisation steps.", unit="m", min=0.5,
-                                max=100.0, source="issue 17")
-    reloc_sigma_m: float = param(1.5, "σ of a step's displacement mismatch (road against odometry), constant part.",
-                                 unit="m", min=0.01, max=100.0, source="issue 17; by measurement")
-    reloc_sigma_per_m: float = param(0.15, "σ of a step's displacement mismatch, per metre of the step (heading and "
-                                     "scale error).", unit="m/m", min=0.0, max=10.0, source="issue 17; by measurement")
-    reloc_scale_sigma: float = param(0.03, "Relative σ of each particle's distance per step (the odometry's scale "
-                                     "error).", unit="1", min=0.0, max=1.0, source="issue 22's fitted VO: 2.5% scale")
     reloc_scale_min: float = param(1.0, "Smallest odometry scale (map metres per odometry unit) a cold start searches "
                                    "over; with reloc_scale_max above it the scale is unknown and found with the "
                                    "position (fuse --scale-unknown). 1 and 1: a metric odometry, taken as given.",
                                    unit="m/unit", min=1e-6, max=1e6, source="issue 17 item 2")
     reloc_scale_max: float = param(1.0, "Largest odometry scale a cold start searches over (see reloc_scale_min).",
                                    unit="m/unit", min=1e-6, max=1e6, source="issue 17 item 2")
-    reloc_scale_walk: float = param(0.005, "σ of the random walk of a particle's log-scale per step, when the scale "
-                                    "is searched for (a monocular VO's scale wanders).", unit="1", min=0.0, max=1.0,
-                                    source="issue 22: real mono VO's scale random walk 0.004 per √m, 5 m steps "
-                                    "→ 0.009; by measurement")
-    reloc_along_sigma_m: float = param(0.5, "σ added to each particle's distance per step (diffusion along the "
-                                       "road).", unit="m", min=0.0, max=100.0, source="issue 17; by measurement")
-    reloc_offset_gain: float = param(0.2, "Gain with which a particle's heading offset follows each step's heading "
-                                     "innovation (the odometry's yaw drift).", unit="1", min=0.0, max=1.0,
-                                     source="issue 17; by measurement")
-    reloc_uturn_probability: float = param(0.0, "Probability that a particle on a two-way road turns back in one step "
-                                           "(0: only at a dead end; the road fixes' particles take "
-                                           "road_fix_uturn_probability).", min=0.0, max=1.0, source="issue 16")
-    reloc_uturn_at_vertex: float = param(0.1, "A search's particle reaching a vertex of a two-way road may also turn "
-                                         "back there: one more exit, of this prior weight against 1 for each legal "
-                                         "exit (0: only at a dead end). The road fixes' particles turn back by "
-                                         "road_fix_uturn_probability instead.", min=0.0, max=10.0,
-                                         source="issue 17: SUMO's vehicles turn back at junctions; kidnapped "
-                                         "runs re-anchored wrong 13 -> 7 of 120 (seeds 1-30)")
-    reloc_offset_max_deg: float = param(180.0, "Largest heading innovation a particle's offset follows in one step "
-                                        "(180: any; the road fixes' particles take road_fix_offset_max_deg).",
-                                        unit="deg", min=0.0, max=180.0, source="issue 16")
-    reloc_offset_sigma_deg: float = param(0.3, "σ of the random walk of a particle's heading offset per step.",
-                                          unit="deg", min=0.0, max=90.0, source="issue 22's fitted VO yaw drift")
-    reloc_converge_radius_m: float = param(25.0, "Radius of the disc whose posterior mass decides convergence.",
-                                           unit="m", min=1.0, max=10000.0, source="issue 17; by measurement")
-    reloc_converge_mass: float = param(0.8, "Posterior mass one disc must hold to call the position found.",
-                                       unit="1", min=0.0, max=1.0, exclusive_min=True,
-                                       source="issue 17; by measurement")
-    reloc_min_distance_m: float = param(100.0, "Driving before a re-localisation may converge.", unit="m", min=0.0,
-                                        max=100000.0, source="issue 17; by measurement")
     reloc_max_radius_m: float = param(2000.0, "Largest search region.", unit="m", min=1.0, max=100000.0,
                                       source="issue 17: 2 km in a city at 10 Hz on one core")
     reloc_confirm_m: float = param(5.0, "A re-localisation within this distance of the current estimate only "
@@ -875,10 +854,6 @@ class FusionConfig:
         source="issue 17: kidnapped VO jump Kotka s11, a re-anchoring turned 1,353 m of path from 68% "
                "on the roads to 13% and its smoothed RMSE 18.7 -> 104.5 m; good mends measured 35-64% against 57-83% "
                "(refused at ratio 1, docs/method.md)")
-    reloc_particles_per_m: float = param(10.0, "Particles per metre of road (both directions) in the search region, "
-                                         "up to reloc_particles.", unit="1/m", min=0.01, max=1000.0,
-                                         source="issue 17; by measurement: kidnapped seeds 1-10 / held-out 11-20, "
-                                         "4 → 10 per m: Map-Fusion ATE 78.2 → 60.6 / 104.0 → 84.6 m")
     reloc_doubt_m: float = param(1000.0, "A search begun when the estimate is lost within this much driving after "
                                  "a map re-anchoring also covers the region the re-anchoring's search ran in, grown "
                                  "by the distance since: the re-anchoring may have been wrong (0: the lost region "
@@ -951,17 +926,6 @@ class FusionConfig:
         source="issue 17 (rain-tunnel, GPS at the start only: Helsinki vo s3's second VO gap, 83 s after a 59 s "
                "one whose search had not converged, searched 133 m around an estimate already 480 m off)",
     )
-    reloc_kld_epsilon: float = param(0.0, "Adaptive particle count (KLD-sampling, Fox 2003): at each resampling as "
-                                     "many particles as bound the posterior's error by this (Kullback-Leibler "
-                                     "divergence, 99% confidence) over the bins it occupies, at most the count the "
-                                     "filter started with (0: the count stays).", min=0.0, max=1.0,
-                                     source="issue 21; Fox, 'Adapting the sample size in particle filters through "
-                                     "KLD-sampling', IJRR 2003")
-    reloc_kld_bin_m: float = param(5.0, "Bin size b of that count: position cells of b metres, each direction, "
-                                   "heading offsets per 2·b degrees, scales per b percent.", unit="m", min=0.5,
-                                   max=20.0, source="issue 21; by measurement")
-    reloc_particles_min: int = param(500, "Fewest particles an adaptive count keeps.", min=1, max=2_000_000,
-                                     source="issue 21")
     road_fixes: bool = param(True, "While GPS is silent, road-network particles (the re-localisation's, the "
                              "odometry's scale a state of each) follow the vehicle from the estimate, and their "
                              "confident position enters the graph as a fix: the map's own answer to where the "

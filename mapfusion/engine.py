@@ -41,6 +41,7 @@ from .searching import MapSearch
 from .stream import OnFinal, Release
 from .track import Alignment, JumpGuard, track_for
 from .tracking import RoadFixes
+from .relocalise import SEARCH_PARTICLES
 
 log = logging.getLogger(__name__)
 
@@ -287,7 +288,7 @@ class MapFusion:
         rot = loc.yaw_rad - raw.rotation().yaw()
         c, s, (px, py, _) = math.cos(rot), math.sin(rot), raw.translation()
         scale, c, s = loc.scale, c * loc.scale, s * loc.scale
-        sigma = max(self.cfg.reloc_scale_sigma, loc.scale_spread) * scale
+        sigma = max(SEARCH_PARTICLES.scale_sigma, loc.scale_spread) * scale
         self._motion.cold_start()  # (no window measured this odometry's drift)
         self._begin(Alignment(scale, sigma, rot, np.array([loc.x_m - (c * px - s * py), loc.y_m - (s * px + c * py)])),
                     anchor=len(self.track) - 1)

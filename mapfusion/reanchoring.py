@@ -25,6 +25,7 @@ from .roadmap import RoadMap
 from .track import JumpGuard, Track, level, spread_back
 from .factors import OUTAGE_ROT_SIGMA_DEG
 from .relocalise import RELOC_SEED
+from .relocalise import SEARCH_PARTICLES
 
 log = logging.getLogger(__name__)
 
@@ -68,9 +69,9 @@ class OutageCarry:
         self._gap_pending: tuple[int, gtsam.Pose3, float] | None = None  # the last gap carried: frame, pose before, m
 
     def carried_sigma_m(self, length_m: float) -> float:
-        """σ (m) of a step carried ``length_m`` along the road over an odometry gap: ``reloc_sigma_m`` +
+        """σ (m) of a step carried ``length_m`` along the road over an odometry gap: ``ParticleParams.sigma_m`` +
         ``outage_step_fraction`` of its length (the road follower's spread, and the gap's search's guess)."""
-        return self.cfg.reloc_sigma_m + self.cfg.outage_step_fraction * length_m
+        return SEARCH_PARTICLES.sigma_m + self.cfg.outage_step_fraction * length_m
 
     def step_into(self, k: int, prev: gtsam.Pose3, length_m: float | None = None) -> gtsam.Pose3:
         """The step into frame k. After an odometry outage longer than ``reloc_gap_s`` with ``outage_step =
@@ -89,7 +90,7 @@ class OutageCarry:
             return step
         if self._follower is None:
             # (it follows the road the estimate is on: turning back at a vertex is a search's hypothesis, not a guess)
-            self._follower = RoadFollower(self.road, dataclasses.replace(cfg, reloc_uturn_at_vertex=0.0),
+            self._follower = RoadFollower(self.road, dataclasses.replace(SEARCH_PARTICLES, uturn_at_vertex=0.0),
                                           RELOC_SEED)
         tr = step.translation()
         guessed_m = math.sqrt(tr.dot(tr))
@@ -165,7 +166,7 @@ class OutageCarry:
                  t[k], t[kg], length_m, guessed_m)
         moved_by = prev.compose(self.step_into(kg, prev, length_m)).compose(prev.compose(was_road).inverse())
         pose = level(moved_by.compose(now))
-        sigma = max(est.pos_sigma_m, self.cfg.reloc_sigma_m)
+        sigma = max(est.pos_sigma_m, SEARCH_PARTICLES.sigma_m)
         noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, math.radians(OUTAGE_ROT_SIGMA_DEG),
                                                      sigma))
         est.restart_from(k, pose, noise, sigma)

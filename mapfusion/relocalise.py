@@ -6,11 +6,11 @@ A particle is a position on the road graph — an edge, a direction of travel, a
 edge — and a heading offset (the map's heading minus the odometry's, the rotation that takes the
 odometry frame into the map). Particles start spread uniformly over the roads of a region (every
 road in each direction it may be driven), each with the offset that makes the vehicle drive along
-its road. Every ``reloc_step_m`` of odometry each particle drives the same distance along the graph
+its road. Every ``ParticleParams.step_m`` of odometry each particle drives the same distance along the graph
 (at a vertex it takes a random legal exit: the particles that turned wrong die at the next steps)
 and is weighted by how well its own displacement on the road agrees with the odometry's
-displacement turned by its offset: a Gaussian in the 2-D difference, σ = ``reloc_sigma_m`` +
-``reloc_sigma_per_m`` × distance. Turns at junctions, curvature and the lengths between turns are
+displacement turned by its offset: a Gaussian in the 2-D difference, σ = ``ParticleParams.sigma_m`` +
+``ParticleParams.sigma_per_m`` × distance. Turns at junctions, curvature and the lengths between turns are
 what separates the right place from the others; a straight road is the same everywhere and the
 posterior stays spread until the path turns. The offset follows the odometry's slow heading drift
 (a small gain on each step's heading innovation).
@@ -19,10 +19,10 @@ Each particle also carries the odometry's scale (map metres per odometry unit). 
 odometry taken as given; a search told the scale is unknown (``--scale-unknown``: ``reloc_scale_min``
 to ``reloc_scale_max``) draws it log-uniformly over that range, and the lengths between turns decide it
 as they decide the place: a particle with the wrong scale reaches the next junction too early or too
-late. Its logarithm walks by ``reloc_scale_walk`` a step (a monocular VO's scale wanders).
+late. Its logarithm walks by ``ParticleParams.scale_walk`` a step (a monocular VO's scale wanders).
 
-The posterior has *converged* when one disc of ``reloc_converge_radius_m`` holds at least
-``reloc_converge_mass`` of it after at least ``reloc_min_distance_m`` of driving; the answer is that
+The posterior has *converged* when one disc of ``ParticleParams.converge_radius_m`` holds at least
+``ParticleParams.converge_mass`` of it after at least ``ParticleParams.min_distance_m`` of driving; the answer is that
 cluster's pose (on its road, heading from its offsets) and its spread.
 
 :class:`RoadParticles` is the filter (arrays only, no GTSAM); :class:`Relocaliser` feeds it from an
@@ -111,7 +111,7 @@ class Located:
     edge: int
     direction: int
     along_m: float
-    mass: float  # posterior mass within reloc_converge_radius_m of the pose
+    mass: float  # posterior mass within ParticleParams.converge_radius_m of the pose
     spread_m: float  # RMS distance of that mass from the pose
     yaw_spread_rad: float  # circular σ of its offsets
     driven_m: float  # odometry distance since the filter started (m, at the posterior's scale)
@@ -119,11 +119,99 @@ class Located:
     scale_spread: float = 0.0  # relative σ of that scale within the cluster
 
 
+@dataclass(frozen=True)
+class ParticleParams:
+    """The road particles' own settings. The defaults are the search's (:data:`SEARCH_PARTICLES`); the road
+    fixes take their own view of them (:func:`mapfusion.tracking.particle_config`). Fixed values of the engine,
+    each chosen by the measurement its comment names, not settings of :class:`~mapfusion.config.FusionConfig`."""
+
+    #: Particles of the global re-localisation, spread over the region's roads. Source: issue 17; speed (10 Hz on
+    #: one core, 2 km radius).
+    particles: int = 60000
+
+    #: Particles per metre of road (both directions) in the search region, up to particles. Unit: 1/m. Source:
+    #: issue 17; by measurement: kidnapped seeds 1-10 / held-out 11-20, 4 → 10 per m: Map-Fusion ATE 78.2 → 60.6 /
+    #: 104.0 → 84.6 m.
+    particles_per_m: float = 10.0
+
+    #: Fewest particles an adaptive count keeps. Source: issue 21.
+    particles_min: int = 500
+
+    #: Adaptive particle count (KLD-sampling, Fox 2003): at each resampling as many particles as bound the
+    #: posterior's error by this (Kullback-Leibler divergence, 99% confidence) over the bins it occupies, at most
+    #: the count the filter started with (0: the count stays). Source: issue 21; Fox, 'Adapting the sample size in
+    #: particle filters through KLD-sampling', IJRR 2003.
+    kld_epsilon: float = 0.0
+
+    #: Bin size b of that count: position cells of b metres, each direction, heading offsets per 2·b degrees,
+    #: scales per b percent. Unit: m. Source: issue 21; by measurement.
+    kld_bin_m: float = 5.0
+
+    #: Odometry distance between two re-localisation steps. Unit: m. Source: issue 17.
+    step_m: float = 5.0
+
+    #: σ of a step's displacement mismatch (road against odometry), constant part. Unit: m. Source: issue 17; by
+    #: measurement.
+    sigma_m: float = 1.5
+
+    #: σ of a step's displacement mismatch, per metre of the step (heading and scale error). Unit: m/m. Source:
+    #: issue 17; by measurement.
+    sigma_per_m: float = 0.15
+
+    #: Relative σ of each particle's distance per step (the odometry's scale error). Source: issue 22's fitted VO:
+    #: 2.5% scale.
+    scale_sigma: float = 0.03
+
+    #: σ of the random walk of a particle's log-scale per step, when the scale is searched for (a monocular VO's
+    #: scale wanders). Source: issue 22: real mono VO's scale random walk 0.004 per √m, 5 m steps → 0.009; by
+    #: measurement.
+    scale_walk: float = 0.005
+
+    #: σ added to each particle's distance per step (diffusion along the road). Unit: m. Source: issue 17; by
+    #: measurement.
+    along_sigma_m: float = 0.5
+
+    #: Gain with which a particle's heading offset follows each step's heading innovation (the odometry's yaw
+    #: drift). Source: issue 17; by measurement.
+    offset_gain: float = 0.2
+
+    #: σ of the random walk of a particle's heading offset per step. Unit: deg. Source: issue 22's fitted VO yaw
+    #: drift.
+    offset_sigma_deg: float = 0.3
+
+    #: Largest heading innovation a particle's offset follows in one step (180: any; the road fixes' particles take
+    #: road_fix_offset_max_deg). Unit: deg. Source: issue 16.
+    offset_max_deg: float = 180.0
+
+    #: Probability that a particle on a two-way road turns back in one step (0: only at a dead end; the road fixes'
+    #: particles take ROAD_FIX_UTURN_PROBABILITY). Source: issue 16.
+    uturn_probability: float = 0.0
+
+    #: A search's particle reaching a vertex of a two-way road may also turn back there: one more exit, of this
+    #: prior weight against 1 for each legal exit (0: only at a dead end). The road fixes' particles turn back by
+    #: ROAD_FIX_UTURN_PROBABILITY instead. Source: issue 17: SUMO's vehicles turn back at junctions; kidnapped runs
+    #: re-anchored wrong 13 -> 7 of 120 (seeds 1-30).
+    uturn_at_vertex: float = 0.1
+
+    #: Radius of the disc whose posterior mass decides convergence. Unit: m. Source: issue 17; by measurement.
+    converge_radius_m: float = 25.0
+
+    #: Posterior mass one disc must hold to call the position found. Source: issue 17; by measurement.
+    converge_mass: float = 0.8
+
+    #: Driving before a re-localisation may converge. Unit: m. Source: issue 17; by measurement.
+    min_distance_m: float = 100.0
+
+
+#: The search's particles.
+SEARCH_PARTICLES = ParticleParams()
+
+
 class RoadParticles:
     """The particle filter over positions on the road graph (see the module docstring)."""
 
-    def __init__(self, road: RoadMap, cfg: FusionConfig, seed: int | list[int] = 0) -> None:
-        self.road, self.cfg = road, cfg
+    def __init__(self, road: RoadMap, params: ParticleParams, seed: int | list[int] = 0) -> None:
+        self.road, self.params = road, params
         self.rng = np.random.default_rng(seed)
         n_pts = int(np.count_nonzero(~road.is_join))  # edges' way-points come first, join curves after
         self._n_pts = n_pts
@@ -154,7 +242,7 @@ class RoadParticles:
 
     def start(self, region: Region, odometry_yaw_rad: float, n: int | None = None,
               scale_range: tuple[float, float] = (1.0, 1.0), guess: Guess | None = None) -> int:
-        """Spread ``n`` particles (``reloc_particles``) uniformly over the road length inside the region,
+        """Spread ``n`` particles (``ParticleParams.particles``) uniformly over the road length inside the region,
         in each legal direction, heading along their roads, their scales log-uniform over ``scale_range``;
         weighted by ``guess`` when one is given (else equal weights); returns how many way-points lay inside."""
         road = self.road
@@ -167,7 +255,7 @@ class RoadParticles:
         if n is None:  # by the road length in the region (way-points ~1 m apart), both directions
             # and, when the scale is searched too, by its range: one band of particles per factor √2
             bands = max(1.0, (hi - lo) / math.log(SCALE_BAND))
-            n = int(bands * min(self.cfg.reloc_particles, max(1000, self.cfg.reloc_particles_per_m * near.size)))
+            n = int(bands * min(self.params.particles, max(1000, self.params.particles_per_m * near.size)))
         pick = near[self.rng.integers(0, near.size, n)]
         travel = road.travel[pick]
         d = np.where(self.rng.random(n) < 0.5, 1, -1)
@@ -237,9 +325,9 @@ class RoadParticles:
         return self._heading(self.edge, self.along, self.direction)
 
     def allow_uturns(self, probability: float) -> None:
-        """Let the particles turn back with at least ``probability`` per step (``reloc_uturn_probability``)."""
-        if self.cfg.reloc_uturn_probability < probability:
-            self.cfg = dataclasses.replace(self.cfg, reloc_uturn_probability=probability)
+        """Let the particles turn back with at least ``probability`` per step (``ParticleParams.uturn_probability``)."""
+        if self.params.uturn_probability < probability:
+            self.params = dataclasses.replace(self.params, uturn_probability=probability)
 
     def _drive(self, distance: np.ndarray, target: np.ndarray, sigma_m: float) -> None:
         """Each particle drives its own distance along the graph. At a vertex it takes a legal exit drawn
@@ -247,9 +335,9 @@ class RoadParticles:
         the odometry's own turn picks the exit, so the particles at the right place follow the right
         road; the importance weight (mean over the exits / the chosen exit's likelihood) keeps the
         posterior that of a uniform choice. No U-turn, except at a dead end or, with
-        ``reloc_uturn_at_vertex``, back along a two-way road as one more exit of that prior weight."""
+        ``ParticleParams.uturn_at_vertex``, back along a two-way road as one more exit of that prior weight."""
         road, exits = self.road, self._exits
-        uturn = self.cfg.reloc_uturn_at_vertex
+        uturn = self.params.uturn_at_vertex
         self._xy = None  # (the particles move)
         along = self.along + self.direction * distance
         length = road.edge_length_m[self.edge]
@@ -300,19 +388,19 @@ class RoadParticles:
         ``chord_odo_xy`` (2,) in the odometry frame (m)."""
         if len(self) == 0 or moved_m <= 0.0:
             return
-        cfg, rng, n = self.cfg, self.rng, len(self)
+        prm, rng, n = self.params, self.rng, len(self)
         before = self.positions()
         scale = np.exp(self.log_scale) if self.scale_free else 1.0  # (a known scale: the odometry's metres)
         c, s = np.cos(self.offset) * scale, np.sin(self.offset) * scale
         ox, oy = chord_odo_xy
         expected = np.column_stack([c * ox - s * oy, s * ox + c * oy])  # the odometry's displacement, per particle
         metres = moved_m * scale
-        sigma = cfg.reloc_sigma_m + cfg.reloc_sigma_per_m * metres
-        if cfg.reloc_uturn_probability > 0:  # (the vehicle turned back where it may: a two-way road)
-            back = (rng.random(n) < cfg.reloc_uturn_probability) & self._two_way[self.edge]
+        sigma = prm.sigma_m + prm.sigma_per_m * metres
+        if prm.uturn_probability > 0:  # (the vehicle turned back where it may: a two-way road)
+            back = (rng.random(n) < prm.uturn_probability) & self._two_way[self.edge]
             self.direction = np.where(back, -self.direction, self.direction)
-        noise = 1.0 + rng.normal(0.0, cfg.reloc_scale_sigma, n)
-        self._drive(np.maximum(metres * noise + rng.normal(0.0, cfg.reloc_along_sigma_m, n), 0.0), before + expected,
+        noise = 1.0 + rng.normal(0.0, prm.scale_sigma, n)
+        self._drive(np.maximum(metres * noise + rng.normal(0.0, prm.along_sigma_m, n), 0.0), before + expected,
                     _median(sigma))
         moved = self.positions() - before  # each particle's displacement on the road
         ex = moved[:, 0] - expected[:, 0]
@@ -321,7 +409,7 @@ class RoadParticles:
             # compared at one reference scale: a particle whose scale is small makes small errors in metres,
             # and σ's constant part would otherwise favour it whatever the path's shape says
             ref = math.exp(0.5 * sum(self._log_range))
-            sigma_ref = cfg.reloc_sigma_m + cfg.reloc_sigma_per_m * moved_m * ref
+            sigma_ref = prm.sigma_m + prm.sigma_per_m * moved_m * ref
             loglik = -0.5 * (ex * ex + ey * ey) * (ref * ref) / (scale * scale * sigma_ref * sigma_ref)
         else:
             loglik = -0.5 * (ex * ex + ey * ey) / (sigma * sigma)
@@ -330,14 +418,14 @@ class RoadParticles:
         if chord > 1.0:  # the offset follows the odometry's heading drift
             road_dir = np.arctan2(moved[:, 1], moved[:, 0])
             innov = wrap_angle(road_dir - math.atan2(oy, ox) - self.offset)
-            if cfg.reloc_offset_max_deg < 180.0:  # a turn the road did not make is a mismatch, not a drift
-                lim = math.radians(cfg.reloc_offset_max_deg)
+            if prm.offset_max_deg < 180.0:  # a turn the road did not make is a mismatch, not a drift
+                lim = math.radians(prm.offset_max_deg)
                 innov = fast_clip(innov, -lim, lim)
             moved_on_road = np.hypot(moved[:, 0], moved[:, 1]) > 0.5 * chord * scale
-            self.offset = wrap_angle(self.offset + np.where(moved_on_road, cfg.reloc_offset_gain * innov, 0.0))
-        self.offset = wrap_angle(self.offset + rng.normal(0.0, math.radians(cfg.reloc_offset_sigma_deg), n))
-        if self.scale_free and cfg.reloc_scale_walk > 0:
-            self.log_scale = fast_clip(self.log_scale + rng.normal(0.0, cfg.reloc_scale_walk, n), *self._log_range)
+            self.offset = wrap_angle(self.offset + np.where(moved_on_road, prm.offset_gain * innov, 0.0))
+        self.offset = wrap_angle(self.offset + rng.normal(0.0, math.radians(prm.offset_sigma_deg), n))
+        if self.scale_free and prm.scale_walk > 0:
+            self.log_scale = fast_clip(self.log_scale + rng.normal(0.0, prm.scale_walk, n), *self._log_range)
         self.logw -= _logsumexp(self.logw)
         self.driven_m += moved_m * (math.exp(float(np.sum(np.exp(self.logw) * self.log_scale))) if self.scale_free
                                     else 1.0)
@@ -350,8 +438,8 @@ class RoadParticles:
         cum = np.cumsum(w)
         cum[-1] = 1.0
         idx = np.searchsorted(cum, (self.rng.random() + np.arange(n)) / n)
-        if self.cfg.reloc_kld_epsilon > 0:  # as many as the occupied bins need (KLD-sampling), drawn afresh
-            m = min(max(kld_count(_occupied_bins(self, idx), self.cfg.reloc_kld_epsilon), self.cfg.reloc_particles_min),
+        if self.params.kld_epsilon > 0:  # as many as the occupied bins need (KLD-sampling), drawn afresh
+            m = min(max(kld_count(_occupied_bins(self, idx), self.params.kld_epsilon), self.params.particles_min),
                     max(self._n_max, n))
             if m != n:
                 n = m
@@ -378,11 +466,11 @@ class RoadParticles:
     def located(self, odometry_yaw_rad: float) -> Located | None:
         """The main cluster's pose when the posterior has converged (see the module docstring), else None;
         its heading is the odometry's current heading turned by the cluster's mean offset."""
-        cfg = self.cfg
-        if len(self) == 0 or self.driven_m < cfg.reloc_min_distance_m:
+        prm = self.params
+        if len(self) == 0 or self.driven_m < prm.min_distance_m:
             return None
         xy, w = self.positions(), np.exp(self.logw)
-        r = cfg.reloc_converge_radius_m
+        r = prm.converge_radius_m
         cx, cy = np.floor(xy[:, 0] / r).astype(np.int64), np.floor(xy[:, 1] / r).astype(np.int64)
         inv = _cell_ids(cx, cy)
         best = int(np.argmax(np.bincount(inv, weights=w)))
@@ -399,7 +487,7 @@ class RoadParticles:
                 return None
             centre = _weighted_mean_xy(xs[inside], ws[inside] + 1e-300)
         mass = float(ws[inside].sum())
-        if mass < cfg.reloc_converge_mass:
+        if mass < prm.converge_mass:
             return None
         wi = ws[inside] / ws[inside].sum()
         d2 = np.sum((xs[inside] - centre) ** 2, axis=1)
@@ -418,10 +506,10 @@ class RoadParticles:
 
 
 def _occupied_bins(p: RoadParticles, idx: np.ndarray) -> int:
-    """How many bins of ``p``'s state its particles ``idx`` occupy: cells of ``reloc_kld_bin_m`` = b, each
+    """How many bins of ``p``'s state its particles ``idx`` occupy: cells of ``ParticleParams.kld_bin_m`` = b, each
     direction, heading offsets per 2·b degrees, scales per b percent (each about b metres of position
     after some 30-100 m of driving)."""
-    b = p.cfg.reloc_kld_bin_m
+    b = p.params.kld_bin_m
     xy = p.positions()[idx]
     key = np.floor(xy[:, 0] / b).astype(np.int64) * 2_000_003 + np.floor(xy[:, 1] / b).astype(np.int64)
     key = key * 2 + (p.direction[idx] > 0)
@@ -433,8 +521,8 @@ def _occupied_bins(p: RoadParticles, idx: np.ndarray) -> int:
 class RoadFollower:
     """The outage step's road follower: a few drives along the graph from one place towards a guess."""
 
-    def __init__(self, road: RoadMap, cfg: FusionConfig, seed: int | list[int] = 0) -> None:
-        self.particles = RoadParticles(road, cfg, seed)
+    def __init__(self, road: RoadMap, params: ParticleParams, seed: int | list[int] = 0) -> None:
+        self.particles = RoadParticles(road, params, seed)
 
     def road_pose(self, edge: int, direction: int, along_m: float) -> tuple[float, float, float]:
         return self.particles.road_pose(edge, direction, along_m)
@@ -600,13 +688,12 @@ class Relocaliser:
     """Feeds :class:`RoadParticles` from an odometry stream of planar poses (x, y, yaw in the odometry's
     frame, metres after the odometry's scale) and says where the vehicle is once it has converged."""
 
-    def __init__(self, road: RoadMap, cfg: FusionConfig, region: Region, seed: int | list[int] = 0,
+    def __init__(self, road: RoadMap, params: ParticleParams, region: Region, seed: int | list[int] = 0,
                  scale_range: tuple[float, float] = (1.0, 1.0), guess: Guess | None = None) -> None:
-        self.particles = RoadParticles(road, cfg, seed)
+        self.particles = RoadParticles(road, params, seed)
         self.region = region
         self.guess = guess
         self.scale_range = scale_range
-        self.cfg = cfg
         self._anchor: tuple[float, float] | None = None  # odometry position at the last filter step
         self._last: tuple[float, float] | None = None
         self._moved = 0.0
@@ -636,7 +723,7 @@ class Relocaliser:
         assert self._last is not None
         self._moved += math.hypot(x - self._last[0], y - self._last[1])
         self._last = (x, y)
-        if self._moved < self.cfg.reloc_step_m:
+        if self._moved < self.particles.params.step_m:
             return None
         chord = np.array([x - self._anchor[0], y - self._anchor[1]])
         moved, self._anchor, self._moved = self._moved, (x, y), 0.0
@@ -665,7 +752,7 @@ class Search:
         if given. ``frame``: the engine's frame it begins at, which seeds it (with ``RELOC_SEED``), so that a
         search's draws do not depend on how many searches came before it (without: the count so far does)."""
         seed: int | list[int] = RELOC_SEED + self.searches if frame is None else [RELOC_SEED, frame]
-        self.active = Relocaliser(self.road, self.cfg, region, seed, scale_range, guess)
+        self.active = Relocaliser(self.road, SEARCH_PARTICLES, region, seed, scale_range, guess)
         self.watching = None
         self.searches += 1
 
@@ -728,5 +815,6 @@ class Search:
             self.active = None
             log.info("re-localised on the road network after %.0f m: (%.1f, %.1f), %.0f%% of the posterior "
                      "within %.0f m (spread %.1f m), scale %.4f ± %.1f%%", loc.driven_m, loc.x_m, loc.y_m,
-                     100 * loc.mass, self.cfg.reloc_converge_radius_m, loc.spread_m, loc.scale, 100 * loc.scale_spread)
+                     100 * loc.mass, SEARCH_PARTICLES.converge_radius_m, loc.spread_m, loc.scale,
+                     100 * loc.scale_spread)
         return loc

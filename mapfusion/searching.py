@@ -26,6 +26,7 @@ from .roadmap import RoadMap
 from .track import Track, planar_of
 from .factors import OUTAGE_ROT_SIGMA_DEG
 from .relocalise import RELOC_RADIUS_M
+from .relocalise import SEARCH_PARTICLES
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +37,8 @@ RELOC_GAP_MARGIN_M = 100.0
 
 #: The search begun after an odometry gap starts from the engine's own guess (the step carried along the road,
 #: outage_step): its particles weighted floor + (1 − floor) × a Gaussian around that pose (σ of the carried step:
-#: reloc_sigma_m + outage_step_fraction × its length, and outage_rot_sigma_deg), so that places the guess rules out
+#: ParticleParams.sigma_m + outage_step_fraction × its length, and OUTAGE_ROT_SIGMA_DEG), so that places the guess
+#: rules out
 #: keep this share of the weight; 1: uniform over the region. Source: issue 17 (kidnapped VO jumps: carried steps
 #: 2–50 m off in most runs, while a uniform search took 600–1,000 m of Kotka's long roads to converge).
 RELOC_GAP_GUESS_FLOOR = 0.05
@@ -136,7 +138,7 @@ class MapSearch:
     def _gap_guess(self, prev: gtsam.Pose3, pred: gtsam.Pose3) -> Guess | None:
         """The engine's own guess across an odometry gap (the step carried along the road from ``prev`` to
         ``pred``) as the gap's search's prior (``RELOC_GAP_GUESS_FLOOR``; none at 1): σ as the carried step's
-        (``reloc_sigma_m`` + ``outage_step_fraction`` of its length) and ``OUTAGE_ROT_SIGMA_DEG``. Uniform over
+        (``ParticleParams.sigma_m`` + ``outage_step_fraction`` of its length) and ``OUTAGE_ROT_SIGMA_DEG``. Uniform over
         the region, a search on long straight roads holds the right place with every other stretch of road in
         the region for hundreds of metres, while the estimate it should correct strays at the next junction."""
         cfg = self.cfg
@@ -233,14 +235,14 @@ class MapSearch:
 
     def _rival_at_estimate(self, k: int, pred: gtsam.Pose3, loc: Located, search: Relocaliser) -> bool:
         """True (and logged) when ``search``, whose answer ``loc`` is away from the estimate, still holds at least
-        ``reloc_rival_mass`` of its posterior within 2 × ``reloc_converge_radius_m`` of the estimate (and, with
+        ``reloc_rival_mass`` of its posterior within 2 × ``ParticleParams.converge_radius_m`` of the estimate (and, with
         ``reloc_rival_outside_answer``, outside the answer's own disc: an answer near the estimate is not its own
         rival): it has not ruled the estimate's place out, only preferred another, and a good estimate is not
         moved on that."""
         cfg = self.cfg
         if cfg.reloc_rival_mass <= 0:
             return False
-        r = cfg.reloc_converge_radius_m
+        r = SEARCH_PARTICLES.converge_radius_m
         mass = search.particles.mass_within(pred.x(), pred.y(), 2.0 * r,
                                             (loc.x_m, loc.y_m, r) if cfg.reloc_rival_outside_answer else None)
         if mass < cfg.reloc_rival_mass:

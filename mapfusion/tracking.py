@@ -9,7 +9,7 @@ odometry's shape since the start fits the roads it would have driven (:class:`~m
 RoadParticles`): their answer does not depend on the estimate, so it can pull a lost estimate back.
 They start on the roads within ``road_fix_radius_m`` (at least 3 σ) of the estimate when no GPS fix
 was used for ``ROAD_FIX_AFTER_GPS_S``, their scales log-uniform within the estimate's scale ×/÷
-``road_fix_scale_factor`` and walking (``reloc_scale_walk``) — the map observes the scale as it
+``road_fix_scale_factor`` and walking (``ParticleParams.scale_walk``) — the map observes the scale as it
 observes the place. Every ``road_fix_every_m`` of driving, when one disc of ``ROAD_FIX_CLUSTER_M``
 holds ``road_fix_min_mass`` of the posterior, its pose is a fix: σ its spread (at least
 ``road_fix_sigma_m``; Gaussian: under the map priors' robust kernel a fix far from a lost estimate
@@ -39,7 +39,16 @@ from . import factors
 from .config import FusionConfig
 from .counters import Counters
 from .estimate import Estimate
-from .relocalise import RELOC_SEED, ROAD_FIX_UTURN_PROBABILITY, Guess, Located, Region, RoadParticles
+from .relocalise import (
+    RELOC_SEED,
+    ROAD_FIX_UTURN_PROBABILITY,
+    SEARCH_PARTICLES,
+    Guess,
+    Located,
+    ParticleParams,
+    Region,
+    RoadParticles,
+)
 from .roadmap import RoadMap
 from .track import planar_of
 
@@ -60,23 +69,23 @@ ROAD_FIX_HOLD_M = 50.0
 #: answer's spread, the drift) is not a fix (0: no gate). Source: issue 16: never make a drive worse.
 ROAD_FIX_GATE_SIGMA = 5.0
 
-#: Radius of the disc whose mass decides a fix. Unit: m. Source: as reloc_converge_radius_m.
+#: Radius of the disc whose mass decides a fix. Unit: m. Source: as ParticleParams.converge_radius_m.
 ROAD_FIX_CLUSTER_M = 25.0
 
-#: reloc_kld_epsilon for the road fixes' particles: once they agree on one place they need far fewer than it took
+#: ParticleParams.kld_epsilon for the road fixes' particles: once they agree on one place they need far fewer than it
+#: took
 #: to find it. Source: issue 21; by measurement.
 ROAD_FIX_KLD_EPSILON = 0.05
 
 
-def particle_config(cfg: FusionConfig) -> FusionConfig:
+def particle_config(cfg: FusionConfig) -> ParticleParams:
     """The road fixes' particles' own view of the configuration: no distance before an answer (they start
     where the vehicle is), the fix's disc and mass, their offsets and turns back, their adaptive count and
     the start's cap."""
-    return dataclasses.replace(cfg, reloc_min_distance_m=0.0, reloc_converge_radius_m=ROAD_FIX_CLUSTER_M,
-                               reloc_converge_mass=cfg.road_fix_min_mass,
-                               reloc_offset_max_deg=cfg.road_fix_offset_max_deg,
-                               reloc_uturn_probability=ROAD_FIX_UTURN_PROBABILITY, reloc_uturn_at_vertex=0.0,
-                               reloc_kld_epsilon=ROAD_FIX_KLD_EPSILON, reloc_particles=cfg.road_fix_particles)
+    return dataclasses.replace(SEARCH_PARTICLES, min_distance_m=0.0, converge_radius_m=ROAD_FIX_CLUSTER_M,
+                               converge_mass=cfg.road_fix_min_mass, offset_max_deg=cfg.road_fix_offset_max_deg,
+                               uturn_probability=ROAD_FIX_UTURN_PROBABILITY, uturn_at_vertex=0.0,
+                               kld_epsilon=ROAD_FIX_KLD_EPSILON, particles=cfg.road_fix_particles)
 
 
 class RoadFixes:
@@ -171,7 +180,7 @@ class RoadFixes:
             return None
         self._moved += math.hypot(x - self._last_xy[0], y - self._last_xy[1])
         self._last_xy = (x, y)
-        if self._moved * scale < cfg.reloc_step_m:
+        if self._moved * scale < SEARCH_PARTICLES.step_m:
             return None
         moved, chord = self._moved, np.array([x - self._anchor[0], y - self._anchor[1]])
         self._anchor, self._moved = (x, y), 0.0
@@ -248,7 +257,7 @@ class RoadFixes:
 
     def _steady(self, x: float, y: float, yaw: float, scale: float) -> bool:
         """May the particles start: the odometry's heading turned by at most ``road_fix_offset_max_deg`` over its
-        last ``reloc_step_m`` — the first start after a re-anchoring. The
+        last ``ParticleParams.step_m`` — the first start after a re-anchoring. The
         particles start heading along their roads, which is where the vehicle heads only when it is not turning:
         started mid-turn at a junction, those on the road it turns into carry the turn still to come in their
         offsets, more than they may absorb, and die. A search converges where the path turns, so the re-anchoring
@@ -259,7 +268,7 @@ class RoadFixes:
             self._pending = (x, y, yaw)
             return False
         px, py, pyaw = self._pending
-        if math.hypot(x - px, y - py) * scale < self.cfg.reloc_step_m:
+        if math.hypot(x - px, y - py) * scale < SEARCH_PARTICLES.step_m:
             return False
         self._pending = (x, y, yaw)
         return abs(math.remainder(yaw - pyaw, 2.0 * math.pi)) <= math.radians(self.cfg.road_fix_offset_max_deg)

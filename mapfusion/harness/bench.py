@@ -374,14 +374,13 @@ def bench_relocalise(road: RoadMap, radius_m: float = 2000.0, length_m: float = 
     """The road-network search (issue 17) fed a 10 Hz drive along the map's roads from a region of ``radius_m``
     around its start: its cost against the drive's own duration (``realtime_factor`` > 1: it keeps up, on
     one core)."""
-    from mapfusion.config import FusionConfig
     from mapfusion.geometry import resample
-    from mapfusion.relocalise import Region, Relocaliser
+    from mapfusion.relocalise import SEARCH_PARTICLES, Region, Relocaliser
 
     pts, _ = resample(route_walk(road, length_m, seed), speed_mps / rate_hz)  # (as bench_engine's drive)
     x, y = pts[:, 0], pts[:, 1]
     yaw = np.arctan2(np.gradient(y), np.gradient(x))
-    reloc = Relocaliser(road, FusionConfig(), Region(float(x[0]), float(y[0]), radius_m), seed)
+    reloc = Relocaliser(road, SEARCH_PARTICLES, Region(float(x[0]), float(y[0]), radius_m), seed)
     t0 = time.perf_counter()
     for k in range(len(x)):
         reloc.add(float(x[k]), float(y[k]), float(yaw[k]))

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from mapfusion.config import FusionConfig
-from mapfusion.relocalise import RELOC_SEED, Located, Region, Relocaliser
+from mapfusion.relocalise import RELOC_SEED, SEARCH_PARTICLES, Located, Region, Relocaliser
 from mapfusion.roadmap import RoadMap
 
 #: Particles drawn per panel (a weighted subsample: the picture, not the filter, is thinned).
@@ -30,7 +30,7 @@ def search_snapshots(road: RoadMap, cfg: FusionConfig, region: Region, odo_xy_ya
                      every_m: float = 25.0) -> tuple[list[Snapshot], Located | None]:
     """Run the search over planar odometry poses (N, 3: x, y, yaw, metres) and keep the particles every
     ``every_m`` of driving, up to convergence; returns the snapshots and the answer (None: not found)."""
-    reloc = Relocaliser(road, cfg, region, RELOC_SEED, (cfg.reloc_scale_min, cfg.reloc_scale_max))
+    reloc = Relocaliser(road, SEARCH_PARTICLES, region, RELOC_SEED, (cfg.reloc_scale_min, cfg.reloc_scale_max))
     rng = np.random.default_rng(0)
     shots: list[Snapshot] = []
     next_m = 0.0

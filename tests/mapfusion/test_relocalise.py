@@ -15,12 +15,13 @@ from hypothesis.extra import numpy as hnp
 
 from mapfusion import FusionConfig, RoadMap
 from mapfusion.config import OutageStep
-from mapfusion.relocalise import Guess, Region, Relocaliser, RoadFollower, RoadParticles, Search, _edge_travel, \
-    _median, _weighted_mean_xy, guess_log_weights
+from mapfusion.relocalise import SEARCH_PARTICLES, Guess, Region, Relocaliser, RoadFollower, RoadParticles, Search, \
+    _edge_travel, _median, _weighted_mean_xy, guess_log_weights
 from mapfusion.roadmap import can_drive
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
 CFG = FusionConfig()
+PARTICLES = SEARCH_PARTICLES
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +30,7 @@ def road():
 
 
 def test_every_exit_is_legal_and_leaves_the_vertex_the_edge_leads_to(road):
-    p = RoadParticles(road, CFG)
+    p = RoadParticles(road, PARTICLES)
     ex = p._exits
     for e in range(0, len(road.edge_u), 7):
         for d in (1, -1):
@@ -47,7 +48,7 @@ def test_every_exit_is_legal_and_leaves_the_vertex_the_edge_leads_to(road):
 @given(seed=st.integers(0, 10_000), steps=st.integers(1, 30), step_m=st.floats(0.5, 40.0),
        turn=st.floats(-math.pi, math.pi), uturn=st.sampled_from([0.0, 0.1, 1.0]))
 def test_particles_stay_on_their_roads_and_the_posterior_sums_to_one(road, seed, steps, step_m, turn, uturn):
-    p = RoadParticles(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=uturn), seed)
+    p = RoadParticles(road, dataclasses.replace(PARTICLES, uturn_at_vertex=uturn), seed)
     rng = np.random.default_rng(seed)
     x0, y0 = road.xy_m[int(rng.integers(len(road)))]
     assert p.start(Region(float(x0), float(y0), 300.0), 0.0, n=500) > 0
@@ -67,7 +68,7 @@ def test_turning_back_at_a_vertex_takes_its_prior_share_of_the_posterior(road, s
     """Particles just before the far vertex of a two-way edge drive past it with a target that says nothing (σ huge):
     whichever exits the proposal picks, the importance weights leave turning back its prior share, uturn / (exits +
     uturn), and every legal exit 1 / (exits + uturn)."""
-    p = RoadParticles(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=uturn), seed)
+    p = RoadParticles(road, dataclasses.replace(PARTICLES, uturn_at_vertex=uturn), seed)
     rng = np.random.default_rng(seed)
     ex = p._exits
     two_way = [e for e in range(len(road.edge_u)) if p._two_way[e] and ex.start[2 * e + 1] - ex.start[2 * e] >= 1
@@ -97,7 +98,7 @@ def test_turning_back_at_a_vertex_takes_its_prior_share_of_the_posterior(road, s
 @given(seed=st.integers(0, 10_000), steps=st.integers(0, 10), r1=st.floats(0.0, 500.0), r2=st.floats(0.0, 500.0),
        dx=st.floats(-400.0, 400.0), dy=st.floats(-400.0, 400.0))
 def test_the_mass_within_a_disc_grows_with_it_from_none_to_all(road, seed, steps, r1, r2, dx, dy):
-    p = RoadParticles(road, CFG, seed)
+    p = RoadParticles(road, PARTICLES, seed)
     rng = np.random.default_rng(seed)
     x0, y0 = (float(v) for v in road.xy_m[int(rng.integers(len(road)))])
     assert p.mass_within(x0, y0, 100.0) == 0.0  # (no particles yet)
@@ -122,7 +123,8 @@ def _relocalise(road, seed, length_m, offset_m=300.0, radius_m=1000.0):
     ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, scale=1.02, yaw_drift_rad_per_m=math.radians(1.0) / 100,
                                      heading_rad=1.0, noise_m=0.02)
     a = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi)
-    r = Relocaliser(road, CFG, Region(x[0] + offset_m * math.cos(a), y[0] + offset_m * math.sin(a), radius_m), seed)
+    r = Relocaliser(road, PARTICLES, Region(x[0] + offset_m * math.cos(a), y[0] + offset_m * math.sin(a), radius_m),
+                    seed)
     for k in range(len(x)):
         loc = r.add(ox[k], oy[k], oyaw[k])
         if loc is not None:
@@ -146,7 +148,7 @@ def test_a_drives_shape_finds_it_in_a_1_km_region(road):
 
 
 def test_a_region_without_roads_finds_nothing(road):
-    r = Relocaliser(road, CFG, Region(1e6, 1e6, 500.0))
+    r = Relocaliser(road, PARTICLES, Region(1e6, 1e6, 500.0))
     assert all(r.add(float(k), 0.0, 0.0) is None for k in range(300))
     assert r.way_points_in_region == 0 and len(r.particles) == 0
 
@@ -369,7 +371,7 @@ def test_a_search_after_a_gap_covers_a_vehicle_that_sped_up_in_it():
     """The synthetic tunnel road at 20 m/s, GPS for the first 20 s, then the VO blind for 25 s in which the vehicle
     drives 26 m/s: the step carried over the gap (the speeds at both ends, 20 m/s) falls 150 m short, so a region
     of the carried step's length alone (100 m + 500 m) misses the truth by ~50 m. reloc_gap_reach_sigmas = 1 adds
-    the carried step's σ (reloc_sigma_m + outage_step_fraction × 500 m). Rain-tunnel Andorra vo s2 (27 m/s in a
+    the carried step's σ (ParticleParams.sigma_m + outage_step_fraction × 500 m). Rain-tunnel Andorra vo s2 (27 m/s in a
     106 s tunnel carried at 19-25 m/s) is where this was found: its search converged 860 m off."""
     from mapfusion import MapFusion
 
@@ -537,7 +539,7 @@ def test_a_search_beside_gps_never_moves_the_estimate_while_fixes_come(road):
        lo=st.floats(0.05, 5.0), octaves=st.floats(0.1, 3.0))
 def test_a_scale_search_keeps_each_scale_in_its_range_and_the_posterior_a_distribution(road, seed, steps, step_m,
                                                                                        lo, octaves):
-    p = RoadParticles(road, CFG, seed)
+    p = RoadParticles(road, PARTICLES, seed)
     rng = np.random.default_rng(seed)
     x0, y0 = road.xy_m[int(rng.integers(len(road)))]
     hi = lo * 2.0**octaves
@@ -559,7 +561,7 @@ def test_a_search_for_the_scale_finds_the_place_and_the_scale(road, seed):
     ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, scale=1.0 / 1.4, yaw_drift_rad_per_m=math.radians(1.0) / 100,
                                      heading_rad=1.0, noise_m=0.02)
     a = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi)
-    r = Relocaliser(road, CFG, Region(x[0] + 300.0 * math.cos(a), y[0] + 300.0 * math.sin(a), 1000.0), seed,
+    r = Relocaliser(road, PARTICLES, Region(x[0] + 300.0 * math.cos(a), y[0] + 300.0 * math.sin(a), 1000.0), seed,
                     (0.5, 2.0))
     for k in range(len(x)):
         loc = r.add(ox[k], oy[k], oyaw[k])
@@ -641,7 +643,7 @@ def test_an_adaptive_count_stays_between_its_floor_and_the_start_and_shrinks_onc
     than it started with."""
     import dataclasses
 
-    cfg = dataclasses.replace(CFG, reloc_kld_epsilon=0.05, reloc_particles_min=200)
+    cfg = dataclasses.replace(PARTICLES, kld_epsilon=0.05, particles_min=200)
     p = RoadParticles(road, cfg, seed)
     x, y, yaw, _ = graph_route(road, seed, 5.0 * steps + 50.0)
     assert p.start(Region(float(x[0]), float(y[0]), 60.0), float(yaw[0])) > 0
@@ -717,7 +719,7 @@ def test_a_gap_while_a_search_runs_also_covers_the_running_search_s_region(road,
     x0, y0 = (float(v) for v in road.xy_m[0])
     mine = Region(x0, y0, new_r)
     assert eng._map_search._still_open(mine, reach) == mine  # (nothing running)
-    running = Relocaliser(road, cfg, Region(x0 + dx, y0 + dy, old_r))
+    running = Relocaliser(road, PARTICLES, Region(x0 + dx, y0 + dy, old_r))
     running.particles.driven_m = driven
     eng._map_search.search.active = running
     got = eng._map_search._still_open(mine, reach)
@@ -736,7 +738,7 @@ def test_a_watched_search_ends_after_its_distance_and_when_another_begins(road):
     x, y, yaw, _ = graph_route(road, 1, 600.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, 1, noise_m=0.02)
     off = Search(road, dataclasses.replace(CFG, reloc_watch_m=0.0))
-    r = Relocaliser(road, CFG, Region(x[0], y[0], 300.0))
+    r = Relocaliser(road, PARTICLES, Region(x[0], y[0], 300.0))
     off.watch(r)
     assert off.watching is None  # reloc_watch_m 0: a search ends when it converges
     search = Search(road, dataclasses.replace(CFG, reloc_watch_m=200.0))
@@ -745,7 +747,7 @@ def test_a_watched_search_ends_after_its_distance_and_when_another_begins(road):
     while search.watching is not None:
         search.watched(ox[k], oy[k], oyaw[k], k)
         k += 1
-    assert 195.0 <= r.particles.driven_m <= 215.0  # (whole filter steps of reloc_step_m)
+    assert 195.0 <= r.particles.driven_m <= 215.0  # (whole filter steps of ParticleParams.step_m)
     search.watch(r)
     search.begin(Region(x[k], y[k], 300.0))
     assert search.watching is None and search.watched(ox[k + 1], oy[k + 1], oyaw[k + 1]) is None
@@ -768,7 +770,7 @@ def test_a_watched_search_takes_a_wrong_re_anchoring_back_to_where_its_posterior
 
         cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_watch_m=watch_m)
         eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
-        r = Relocaliser(road, cfg, Region(x[k_search], y[k_search], 300.0), seed=1)
+        r = Relocaliser(road, PARTICLES, Region(x[k_search], y[k_search], 300.0), seed=1)
         for k in range(len(x)):
             if k % 10 == 0 and k < 400:
                 lat, lon = road.projection.to_geo(x[k], y[k])
@@ -813,7 +815,7 @@ def test_a_watched_jump_held_back_by_rival_mass_is_weighed_again_until_the_mass_
     eng = MapFusion(road, CFG, odometry_rate_hz=10.0)
     eng.add_odometry(0.0, np.eye(4))
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0))
-    watched = Relocaliser(road, CFG, Region(x0, y0, 60.0))
+    watched = Relocaliser(road, PARTICLES, Region(x0, y0, 60.0))
     eng._map_search.search.watching = watched
     far = 6.0 * CFG.reloc_watch_apart_m
     answers = iter([Located(x0 + 2.0, y0, 0.0, 0.0, 0, 1, 0.0, 0.9, 2.0, 0.01, 100.0),
@@ -845,7 +847,7 @@ def _engine_searching(road, cfg, answers, rivals):
     eng = MapFusion(road, dataclasses.replace(cfg, map_relocalisation=True), odometry_rate_hz=10.0)
     eng.add_odometry(0.0, np.eye(4))
     eng.add_odometry(0.1, np.eye(4))
-    running = Relocaliser(road, CFG, Region(x0, y0, 60.0))
+    running = Relocaliser(road, PARTICLES, Region(x0, y0, 60.0))
     eng._map_search.search.active = running
     located = iter([Located(x0 + dx, y0, 0.0, 0.0, 0, 1, 0.0, 0.95, 2.0, 0.01, 150.0 + i)
                     for i, dx in enumerate(answers)])
@@ -900,14 +902,14 @@ def test_a_search_that_still_holds_mass_at_the_estimate_does_not_move_it(road):
     from mapfusion.relocalise import Located
 
     x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
-    r = Relocaliser(road, CFG, Region(x0, y0, 60.0))
+    r = Relocaliser(road, PARTICLES, Region(x0, y0, 60.0))
     r.add(0.0, 0.0, 0.0)  # (spreads the particles over the region's roads)
     answer = Located(x0 + 500.0, y0, 0.0, 0.0, 0, 1, 0.0, 0.9, 2.0, 0.01, 150.0)
     for rival, at, expected in ((0.05, (x0, y0), True), (0.05, (x0 + 1000.0, y0), False), (0.0, (x0, y0), False)):
         eng = MapFusion(road, dataclasses.replace(CFG, reloc_rival_mass=rival), odometry_rate_hz=10.0)
         eng.add_odometry(0.0, np.eye(4))
         pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(at[0], at[1], 0.0))
-        near = r.particles.mass_within(at[0], at[1], 2.0 * CFG.reloc_converge_radius_m)
+        near = r.particles.mass_within(at[0], at[1], 2.0 * PARTICLES.converge_radius_m)
         assert (near >= 0.05) == (at == (x0, y0))  # (the setup: the region's roads lie around the estimate)
         assert eng._map_search._rival_at_estimate(0, pred, answer, r) is expected
 
@@ -922,7 +924,7 @@ def test_an_answer_near_the_estimate_is_not_its_own_rival(road):
     from mapfusion.relocalise import Located
 
     x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
-    r = Relocaliser(road, CFG, Region(x0, y0, 5.0))
+    r = Relocaliser(road, PARTICLES, Region(x0, y0, 5.0))
     r.add(0.0, 0.0, 0.0)  # (every particle within 5 m of (x0, y0): the answer's cluster)
     assert r.particles.mass_within(x0, y0, 5.0) > 0.999
     answer = Located(x0, y0, 0.0, 0.0, 0, 1, 0.0, 1.0, 2.0, 0.01, 150.0)
@@ -1019,13 +1021,13 @@ def test_the_followed_end_has_the_guess_heading_not_only_its_position(tee_road, 
     half = 0.5 * math.radians(err_deg)
     chord = length * (math.sin(half) / half if abs(half) > 1e-9 else 1.0)
     target = (start_x + chord * math.cos(half), jy + chord * math.sin(half))
-    p = RoadFollower(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=0.0), seed)
+    p = RoadFollower(road, dataclasses.replace(PARTICLES, uturn_at_vertex=0.0), seed)
     x, y, yaw = p.follow(m.edge, -1 if m.reversed else 1, m.along_m, length, target, 50.0,
                          target_yaw_rad=2.0 * half, weight_m_per_deg=1.0, max_deg=45.0)
     assert abs(math.remainder(yaw, 2.0 * math.pi)) < math.radians(1.0)
     assert math.hypot(x - (jx + past_m), y - jy) < 1.0
     if err_deg > 10.0:  # the guess lies north of the road, nearer the branch's end: position alone turns
-        p = RoadFollower(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=0.0), seed)
+        p = RoadFollower(road, dataclasses.replace(PARTICLES, uturn_at_vertex=0.0), seed)
         _, _, yaw0 = p.follow(m.edge, -1 if m.reversed else 1, m.along_m, length, target, 50.0)
         ends = {"east": (jx + past_m, jy), "north": (jx, jy + past_m)}
         nearer = min(ends, key=lambda k: math.hypot(ends[k][0] - target[0], ends[k][1] - target[1]))
@@ -1044,7 +1046,7 @@ def test_ends_both_far_off_the_guess_heading_are_told_apart_by_position(tee_road
     target, yaw_guess = (jx - 2.0, jy + 8.0), math.radians(-100.0)
     ends = {}
     for cap in (45.0, 180.0):
-        p = RoadFollower(road, dataclasses.replace(CFG, reloc_uturn_at_vertex=0.0), seed)
+        p = RoadFollower(road, dataclasses.replace(PARTICLES, uturn_at_vertex=0.0), seed)
         ends[cap] = p.follow(m.edge, -1 if m.reversed else 1, m.along_m, 55.0, target, 50.0,
                              target_yaw_rad=yaw_guess, weight_m_per_deg=1.0, max_deg=cap)
     assert abs(math.remainder(ends[45.0][2] - math.pi / 2, 2.0 * math.pi)) < math.radians(1.0)  # north
@@ -1073,7 +1075,7 @@ def _ell_search(twin_ells, guess_floor: float | None, seed: int, guess: Guess | 
     road, (ox, oy) = twin_ells
     if guess_floor is not None:
         guess = Guess(ox + 80.0, oy, 60.0, 0.0, math.radians(20.0), guess_floor)
-    reloc = Relocaliser(road, CFG, Region(ox - 250.0, oy - 100.0, 800.0), seed, guess=guess)
+    reloc = Relocaliser(road, PARTICLES, Region(ox - 250.0, oy - 100.0, 800.0), seed, guess=guess)
     c, s = math.cos(math.radians(30.0)), math.sin(math.radians(30.0))
     path = [(100.0 + d, 0.0, 0.0) for d in range(0, 400)] + [(500.0, float(d), math.pi / 2) for d in range(0, 201)]
     for x, y, yaw in path:
@@ -1101,7 +1103,7 @@ def test_a_gap_s_guess_spanning_the_carried_step_finds_a_vehicle_that_stopped_in
     away, about as little as the other L, and the search never holds 80% in one place; spanning the whole carried
     step (``reloc_gap_guess_along``), it finds the right L within 10 m."""
     road, (ox, oy) = twin_ells
-    sigma_m = CFG.reloc_sigma_m + CFG.outage_step_fraction * 65.0  # (the engine's σ for a 65 m carried step)
+    sigma_m = PARTICLES.sigma_m + CFG.outage_step_fraction * 65.0  # (the engine's σ for a 65 m carried step)
     end_only = Guess(ox + 160.0, oy, sigma_m, 0.0, math.radians(20.0), 0.05)
     spanning = dataclasses.replace(end_only, from_xy_m=(ox + 95.0, oy))
     assert _ell_search(twin_ells, None, seed, guess=end_only) is None
@@ -1150,7 +1152,7 @@ def test_a_guess_weighs_the_first_particles_within_its_floor(road, seed, floor, 
     """The first weights are finite and sum to one; none falls below ``floor`` of the largest; nearer the guess
     (at the same heading difference) never weighs less; floor 1 leaves them equal."""
     cx, cy = road.xy_m[len(road) // 2]
-    p = RoadParticles(road, CFG, seed)
+    p = RoadParticles(road, PARTICLES, seed)
     guess = Guess(cx + dx, cy + dy, sigma_m, math.radians(yaw_deg), math.radians(20.0), floor)
     p.start(Region(cx, cy, 400.0), 0.0, n=3000, guess=guess)
     assert np.isfinite(p.logw).all()  # (no floor and a guess far from every particle: no underflow to 0/0)

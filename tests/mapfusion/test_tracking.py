@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from mapfusion import FusionConfig, MapFusion, RoadMap
 from mapfusion.counters import Counters
-from mapfusion.relocalise import Located
+from mapfusion.relocalise import SEARCH_PARTICLES, Located
 from mapfusion.tracking import RoadFixes
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
@@ -160,7 +160,7 @@ def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road
     if far.size == 0:
         return
     j = int(far[rng.integers(far.size)])
-    p = RoadParticles(road, cfg)
+    p = RoadParticles(road, SEARCH_PARTICLES)
     n = 1000
     at = np.where(np.arange(n) < n // 2, i, j)  # half the particles at each place, weighted rival : 1 - rival
     p.edge, p.direction = road.edge[at].astype(np.int64), np.ones(n, dtype=np.int64)
@@ -211,7 +211,8 @@ def test_a_re_anchoring_restarts_the_particles_around_the_new_estimate_in_the_st
     fixes.reanchored()
     assert fixes.particles is None
     fixes.step(1, 10.1, (0.0, 0.0, 0.0), 1.0, pred, sigma_m)
-    fixes.step(2, 10.2, (ON.reloc_step_m, 0.0, 0.0), 1.0, pred, sigma_m)  # (a start after it waits for a straight step)
+    # (a start after it waits for a straight step)
+    fixes.step(2, 10.2, (SEARCH_PARTICLES.step_m, 0.0, 0.0), 1.0, pred, sigma_m)
     assert fixes.starts == 2 and fixes._ref_slack_m == pytest.approx(min(max(ON.road_fix_radius_m, 3.0 * sigma_m),
                                                                          ON.road_fix_radius_max_m))
 
@@ -220,8 +221,8 @@ def test_a_re_anchoring_restarts_the_particles_around_the_new_estimate_in_the_st
 @given(turn_deg_per_m=st.floats(1.5, 10.0), straight_m=st.floats(6.0, 30.0))
 def test_a_steady_start_waits_for_the_turn_to_end(road, turn_deg_per_m, straight_m):
     """After a re-anchoring the particles do not start while the odometry turns by more than road_fix_offset_max_deg
-    over reloc_step_m (here at least 7.5° per 5 m), and start once it has driven straight for reloc_step_m; a first
-    start is on the first frame."""
+    over ParticleParams.step_m (here at least 7.5° per 5 m), and start once it has driven straight for
+    ParticleParams.step_m; a first start is on the first frame."""
     x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0))
     fixes, eager = RoadFixes(road, ON, Counters()), RoadFixes(road, ON, Counters())
