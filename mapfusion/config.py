@@ -351,6 +351,26 @@ class FusionConfig:
                                    "64.27 m; kitti-real with the search 44.39 m against 38.61 m without it)",
         "traffic_side": "was removed (measured worse: a real TrianFlow drive 23.8 -> 82.5 m, worse than without the "
                         "map, and rain 7.83 -> 9.93 m)",
+        "reloc_under_gps": "was removed: the search runs beside GPS once the estimate is lost (false: a search begun "
+                           "only at GPS's silence re-anchored later: 145.1 / 92.8 / 95.2 s against 97.2 / 83.3 / 94.6"
+                           " s)",
+        "reloc_register_on_roads": "was removed: GPS's last fixes are registered wherever the estimate is (false: "
+                                   "kidnapped seeds 1-10 within 500 m 37 -> 36 of 40)",
+        "reloc_gap_guess_along": "was removed: the gap's guess spans the whole carried step (false: a vehicle that "
+                                 "stopped in the gap was searched for 574 m)",
+        "reloc_gap_keeps_region": "was removed: a gap's search also covers a running search's region (false: rain-"
+                                  "tunnel Helsinki vo s3 searched 133 m around an estimate 480 m off)",
+        "reloc_rival_outside_answer": "was removed: the rival mass is counted outside the answer's disc (false: "
+                                      "corrections of 15-75 m were never made)",
+        "gps_reach_back": "was removed: a GPS re-localisation always mends the stretch since the last fix (false: "
+                          "rain-tunnel drifted 50-135 m in GPS-denied zones)",
+        "outage_turn": "was removed: the carried step always turns with the odometry at a junction (false: a 94 deg "
+                       "turn in an 8 s gap ended 85 m off)",
+        "reloc_mend_back": "was removed: a map re-anchoring always mends the searched path (false: its frames kept a "
+                           "148 m bias)",
+        "road_fix_trust_fit": "was removed: with map_relocalisation the road fixes are always kept near an estimate "
+                              "on the roads (false: kidnapped seeds 1-10 / 11-20 ATE 37.31 / 50.30 -> 40.38 / 50.33 "
+                              "m)",
         **{k: f"is no longer a setting: fixed as {v}" for k, v in _FIXED_KEYS.items()},
     }
 
@@ -767,11 +787,6 @@ class FusionConfig:
                                      "GPS places the estimate and no search runs (0: searches regardless of GPS).",
                                      unit="s", min=0.0,
                                      max=86400.0, source="issue 17: a biased fix window leaves the estimate off")
-    reloc_under_gps: bool = param(True, "With map_relocalisation: once the estimate is lost while GPS still comes "
-                                  "(the fixes may share a bias the map disagrees with), a search runs beside GPS; it "
-                                  "never moves the estimate while fixes come, and when GPS falls silent "
-                                  "(reloc_after_gps_s) its particles go on as the search GPS's silence begins.",
-                                  source="issue 17: a biased fix window is seen as lost long before GPS ends")
     reloc_gps_replay_m: float = param(500.0, "With map_relocalisation: the search begun when GPS falls silent "
                                       "(reloc_after_gps_s; only where GPS left the estimate off the roads, "
                                       "reloc_gps_fit_min) starts this much driving back, around the estimate there, "
@@ -811,16 +826,6 @@ class FusionConfig:
                                         source="issue 17: the fix windows of the kidnapped seeds 1-10 "
                                         "(offline, mapfusion.register): the 19 of 20 biased windows found within "
                                         "3.4 m of their bias had ratios 1.35-3.38, the one found 246 m off 1.04")
-    reloc_register_on_roads: bool = param(
-        True,
-        "Register GPS's last fixes on the roads at its silence even when the estimate kept to the roads (the "
-        "reloc_gps_fit_min test): a window biased along its streets, or onto parallel ones, leaves the estimate on "
-        "roads too; a decisive shift needs the fixes where they are to fit reloc_register_ratio times worse.",
-        source="issue 17: kidnapped GPS bias Helsinki s8, 111 m off along its roads, fit 100%: no "
-               "registration, found by the lost search 616 m on; offline the registration takes it within 2.2 m "
-               "(ratio 1.34), and on 20 unbiased windows it is decisive on none; kidnapped seeds 1-10 within 500 m "
-               "36 -> 37 of 40, the never-kidnapped drives unchanged",
-    )
     reloc_register_after_s: float = param(2.0, "The fixes are registered (reloc_register_ratio) this long after the "
                                           "last one, once per last fix: soon, for the odometry carries the estimate "
                                           "from the last fix to the re-anchoring (a VO's heading wanders a few "
@@ -842,10 +847,6 @@ class FusionConfig:
                                                "runner-up (reloc_register_ratio): nearer shifts are the same place.",
                                                unit="m", min=1.0, max=10000.0,
                                                source="issue 17: a few lane widths, under a block's length")
-    reloc_mend_back: bool = param(True, "A map re-anchoring also moves the final estimates of the frames its search "
-                                  "matched to the roads (from the search's first frame on), rigidly by the "
-                                  "re-anchoring's correction; the online estimates stay as they were.",
-                                  source="issue 17: the path the search matched lies where its end was found")
     reloc_mend_keep_ratio: float = param(
         0.5, "With reloc_mend_back: the searched path is not moved when the moved path's share of frames on a road "
         "(every fifth frame matched within half its road's width plus a lane, heading within prior_max_angle_deg) "
@@ -880,13 +881,6 @@ class FusionConfig:
                                     source="issue 17: as road_fix_rival_mass; kidnapped seeds 1-10 / held-out 11-20, "
                                     "0 / 0.02 / 0.05 / 0.1: ATE 53.8 / 53.2 / 53.2 / 53.2 and 70.9 / 56.2 / 56.2 / "
                                     "57.7 m, runs re-anchored wrong 4 / 3 / 3 / 3 and 8 / 5 / 5 / 6")
-    reloc_rival_outside_answer: bool = param(
-        True,
-        "reloc_rival_mass counts only the mass outside the answer's own disc (reloc_converge_radius_m around it): "
-        "counted in full, an answer 15–75 m from the estimate held the estimate's disc with its own cluster, so "
-        "such a correction was never made (false: counted in full).",
-        source="issue 17 (kidnapped VO jumps: steps carried across the gap 15–60 m along the road stayed so)",
-    )
     reloc_gap_s: float = param(2.0, "An odometry gap longer than this (the VO lost track and re-initialised) opens "
                                "the GPS gate (two agreeing fixes re-anchor, back to the gap), takes the step across "
                                "it along the road (outage_step) and, with map_relocalisation, starts a search "
@@ -908,23 +902,6 @@ class FusionConfig:
         source="issue 17: rain-tunnel Andorra vo s2 drove 27 m/s in a 106 s tunnel gap carried at "
                "19-25 m/s; its search's 2,612 m region ended 300 m short of the vehicle and converged on a look-alike "
                "860 m off",
-    )
-    reloc_gap_guess_along: bool = param(
-        True,
-        "The gap's guess (reloc_gap_guess_floor) is the whole carried step, from where the odometry stopped to where "
-        "the last velocity carries it: its Gaussian is in the distance to that segment, since a vehicle may have "
-        "slowed or stopped in the gap; false: the carried step's end only.",
-        source="issue 17 (kidnapped VO jumps, seeds 1–10: a vehicle that stopped at a light in the gap moved 18 m of "
-               "the 65 m carried, and the search took 574 m)",
-    )
-    reloc_gap_keeps_region: bool = param(
-        True,
-        "An odometry gap while a search is still running (not converged) begins the gap's search over the smallest "
-        "disc that holds its own region and the running search's, grown by the distance driven since that began and "
-        "the gap's reach (at most reloc_max_radius_m): the vehicle is still somewhere the running search had not ruled "
-        "out; false: around the estimate before the gap alone.",
-        source="issue 17 (rain-tunnel, GPS at the start only: Helsinki vo s3's second VO gap, 83 s after a 59 s "
-               "one whose search had not converged, searched 133 m around an estimate already 480 m off)",
     )
     road_fixes: bool = param(True, "While GPS is silent, road-network particles (the re-localisation's, the "
                              "odometry's scale a state of each) follow the vehicle from the estimate, and their "
@@ -987,13 +964,6 @@ class FusionConfig:
                                        "(in log) to the fix's cluster's scale: the map keeps observing the scale "
                                        "after GPS ends (0: the scale GPS measured stays).", min=0.0, max=1.0,
                                        source="issue 16 item 3")
-    road_fix_trust_fit: bool = param(True, "With map_relocalisation (which measures it): no road fix farther than "
-                                     "road_fix_agree_m from an estimate whose last reloc_gps_fit_m lay at least "
-                                     "reloc_gps_fit_min on a road — a path that keeps to the roads is not moved to a "
-                                     "look-alike the particles settled on far away (a lost one leaves the roads).",
-                                     source="issue 17: kidnapped GPS bias Helsinki s2 and s30, good "
-                                     "estimates moved 190-460 m by road fixes; seeds 1-10 / 11-20 ATE 40.38 / 50.33 "
-                                     "-> 37.31 / 50.30 m (with reloc_register_ratio)")
     road_fix_drift: float = param(0.1, "What the odometry may drift, as a fraction of the distance driven: the "
                                   "gate's allowance since its last answer, and a restart's radius (× 3) since the "
                                   "last fix (GPS's or a road fix).", min=0.0,
@@ -1048,12 +1018,6 @@ class FusionConfig:
                "vehicle at 27 m/s inside: 469 m short); 1 s: rain-tunnel with GPS at the start only 75.8 -> 58.2 m, "
                "kidnapped 37.2 -> 33.0 m, no run of 72 worse (docs/method.md)",
     )
-    outage_turn: bool = param(
-        True,
-        "With outage_step = road: at a junction inside the gap, take the exit nearest the last velocity turned "
-        "by the odometry's own turn over the gap (a constant turn); false: nearest straight on.",
-        source="issue 17 (kidnapped: a 94° turn inside an 8 s gap)",
-    )
     outage_end_weight_m_per_deg: float = param(
         1.0,
         "With outage_step = road: of the drives along the graph, the end taken is the one nearest the guess by "
@@ -1073,13 +1037,6 @@ class FusionConfig:
         unit="m",
         min=0.0,
         source="robustness (issue 6)",
-    )
-    gps_reach_back: bool = param(
-        True,
-        "A GPS re-localisation also mends the final estimates since the last fix taken: its correction spread "
-        "back in proportion to the distance driven (the compass rule), so a GPS-denied stretch is not left "
-        "drifted; false: only the estimate from the re-localisation on.",
-        source="issue 16 item 4 (rain-tunnel: the estimate drifted 50–135 m in GPS-denied zones)",
     )
     odometry_prior_rot_sigma_deg: float = param(
         10.0,

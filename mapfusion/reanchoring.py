@@ -108,7 +108,7 @@ class OutageCarry:
         odometry did over the gap (a constant turn)."""
         cfg, follower = self.cfg, self._follower
         assert follower is not None
-        half = 0.5 * self._jumps.gap_yaw_rad if cfg.outage_turn else 0.0
+        half = 0.5 * self._jumps.gap_yaw_rad
         chord = length_m * (math.sin(half) / half if abs(half) > 1e-9 else 1.0)
         # an estimate on its road (within its width, along it) is carried on the road itself; one off it or
         # turned against it by the road's own motion from where it is matched (its offset kept: the map's
@@ -197,7 +197,7 @@ class GpsReanchoring:
         noise = factors.diagonal(factors.pose_sigmas(StateModel.planar, yaw_sigma, sigma))
         was = self.track.online[k]
         est.restart_from(k, pose, noise, sigma)
-        if self.cfg.gps_reach_back and k == r.k and was is not None:
+        if k == r.k and was is not None:
             self._spread_back(r.taken_k, k, was, pose)
         for x, y, kf in r.fixes if k == r.since_k else ():
             est.add(factors.gps_factor(self.cfg.state, kf, x, y, None, sigma))

@@ -1,8 +1,7 @@
 """Re-anchoring the estimate on the map (issue 17): :class:`MapAnchors`, the path every map re-anchoring takes
-(counted, the stretch its search matched mended), and :class:`FixRegistration`: when GPS falls quiet (where it
-left the estimate off the roads, or anywhere with ``reloc_register_on_roads``), its last fixes are registered on
-the roads (:mod:`~mapfusion.register`): a decisive shift re-anchors the smoother at once, the odometry placed on
-the shifted fixes, without a search."""
+(counted, the stretch its search matched mended), and :class:`FixRegistration`: when GPS falls quiet, its last
+fixes are registered on the roads (:mod:`~mapfusion.register`): a decisive shift re-anchors the smoother at once,
+the odometry placed on the shifted fixes, without a search."""
 
 from __future__ import annotations
 
@@ -35,7 +34,7 @@ RELOC_REGISTER_M = 1000.0
 
 class MapAnchors:
     """The map's re-anchorings of the estimate: each one applied through the estimate, counted, its searched
-    stretch mended (``reloc_mend_back``), and the last one remembered (where a later doubt looks again)."""
+    stretch mended, and the last one remembered (where a later doubt looks again)."""
 
     def __init__(self, road: RoadMap, cfg: FusionConfig, track: Track, estimate: Estimate, counters: Counters) -> None:
         self.road, self.cfg, self.track, self.counters = road, cfg, track, counters
@@ -53,16 +52,15 @@ class MapAnchors:
                  fixes: tuple[list[tuple[float, float, int]], float] | None = None) -> None:
         """The smoother re-anchored at frame k on ``pose`` (σ ``sigma_m`` per axis, ``yaw_sigma_rad``) by the map (at
         frame ``now``, k by default: a re-anchoring may reach back), counted with the distance ``searched_m`` it took;
-        the final estimates from frame k0 on are moved with it (``reloc_mend_back``; ``pred``: frame k's estimate
-        before), and ``region`` is where a later doubt looks again (``reloc_doubt_m``). ``fixes`` ((x, y, frame) in the
-        map frame, and their σ in m) enter the graph with it."""
+        the final estimates from frame k0 on are moved with it (``pred``: frame k's estimate before), and ``region``
+        is where a later doubt looks again (``reloc_doubt_m``). ``fixes`` ((x, y, frame) in the map frame, and their
+        σ in m) enter the graph with it."""
         est = self._estimate
         now = k if now is None else now
         self.last = (now, region)
         sigmas = factors.pose_sigmas(StateModel.planar, yaw_sigma_rad, sigma_m)
         est.restart_from(k, pose, factors.diagonal(sigmas), sigma_m)
-        if self.cfg.reloc_mend_back:
-            self.mend_searched(k0, k, pred, pose)
+        self.mend_searched(k0, k, pred, pose)
         if fixes is not None:
             for x, y, kf in fixes[0]:
                 est.add(factors.gps_factor(self.cfg.state, kf, x, y, None, fixes[1]))
@@ -146,16 +144,16 @@ class FixRegistration:
         self._checked_t = math.nan  # the last fix whose window was examined
         self.registered_fix_t = math.nan  # the last fix whose window the registration placed the estimate on
 
-    def due(self, k: int, beside_gps: bool) -> bool:
+    def due(self, k: int) -> bool:
         """Are GPS's fixes to be registered on the roads now: ``reloc_register_after_s`` after the last one (once per
-        last fix), the estimate off the roads (less than ``reloc_gps_fit_min`` of its last ``reloc_gps_fit_m`` on a
-        road, or lost beside GPS: ``beside_gps``), or wherever it is with ``reloc_register_on_roads``?"""
+        last fix), wherever the estimate is (a window biased along its streets, or onto parallel ones, leaves it on
+        roads too)?"""
         cfg, fixes = self.cfg, self._initialiser.fixes
         if cfg.reloc_register_ratio <= 0 or not fixes or fixes[-1][0] == self._checked_t \
                 or self.track.t[k] - fixes[-1][0] < cfg.reloc_register_after_s:
             return False
         self._checked_t = fixes[-1][0]
-        return beside_gps or cfg.reloc_register_on_roads or not self._association.kept_to_roads()
+        return True
 
     def _window(self) -> tuple[list[tuple[float, float, float]], float]:
         """The fixes (t, x, y) of the last ``RELOC_REGISTER_M`` of GPS's path, and that path's length."""
@@ -171,8 +169,7 @@ class FixRegistration:
         return fixes, length_m
 
     def register(self, k: int, pred: gtsam.Pose3) -> bool:
-        """GPS has fallen silent (where it left the estimate off the roads, or anywhere with
-        ``reloc_register_on_roads``): its fixes of the last ``RELOC_REGISTER_M`` registered on the roads
+        """GPS has fallen silent: its fixes of the last ``RELOC_REGISTER_M`` registered on the roads
         (:func:`~mapfusion.register.register_on_roads`, ``reloc_register_ratio``). When the shift is decisive, the
         odometry of the last ``reloc_register_place_m`` of fixes is placed on them, shifted, by a rigid fit (as a GPS
         re-localisation places it; not the estimate moved: after a biased window its heading may be off too), the

@@ -88,7 +88,7 @@ class MapSearch:
         assoc, search = self._association, self.search
         fixes = self._initialiser.fixes
         reg = self._registration
-        if reg.due(k, self._beside_gps) and reg.register(k, pred):  # the fixes' own shape placed on the roads
+        if reg.due(k) and reg.register(k, pred):  # the fixes' own shape placed on the roads
             search.end()
             self._beside_gps = False
             return
@@ -141,22 +141,21 @@ class MapSearch:
         (``ParticleParams.sigma_m`` + ``outage_step_fraction`` of its length) and ``OUTAGE_ROT_SIGMA_DEG``. Uniform over
         the region, a search on long straight roads holds the right place with every other stretch of road in
         the region for hundreds of metres, while the estimate it should correct strays at the next junction."""
-        cfg = self.cfg
         if RELOC_GAP_GUESS_FLOOR >= 1.0:
             return None
         length_m = math.hypot(pred.x() - prev.x(), pred.y() - prev.y())
         return Guess(pred.x(), pred.y(), self._carry.carried_sigma_m(length_m),
                      pred.rotation().yaw(), math.radians(OUTAGE_ROT_SIGMA_DEG), RELOC_GAP_GUESS_FLOOR,
-                     (prev.x(), prev.y()) if cfg.reloc_gap_guess_along else None)
+                     (prev.x(), prev.y()))
 
     def _still_open(self, region: Region, reach_m: float) -> Region:
         """The region of a search begun after an odometry gap (``region``: around the estimate before it) while another
-        search still runs unconverged (``reloc_gap_keeps_region``): the smallest disc that also holds the running
+        search still runs unconverged: the smallest disc that also holds the running
         search's region grown by the distance driven since it began and by the gap's ``reach_m`` (the vehicle may be
         anywhere that search had not ruled out, the estimate it left being no better than its guess), at most
         ``reloc_max_radius_m``."""
         running = self.search.active
-        if running is None or not self.cfg.reloc_gap_keeps_region:
+        if running is None:
             return region
         old = running.region
         both = enclosing_disc(region, Region(old.x_m, old.y_m, old.radius_m + running.particles.driven_m + reach_m))
@@ -235,16 +234,15 @@ class MapSearch:
 
     def _rival_at_estimate(self, k: int, pred: gtsam.Pose3, loc: Located, search: Relocaliser) -> bool:
         """True (and logged) when ``search``, whose answer ``loc`` is away from the estimate, still holds at least
-        ``reloc_rival_mass`` of its posterior within 2 × ``ParticleParams.converge_radius_m`` of the estimate (and, with
-        ``reloc_rival_outside_answer``, outside the answer's own disc: an answer near the estimate is not its own
-        rival): it has not ruled the estimate's place out, only preferred another, and a good estimate is not
-        moved on that."""
+        ``reloc_rival_mass`` of its posterior within 2 × ``ParticleParams.converge_radius_m`` of the estimate (outside
+        the answer's own disc: an answer near the estimate is not its own rival): it has not ruled the estimate's place
+        out, only preferred another, and a good estimate is not moved on that."""
         cfg = self.cfg
         if cfg.reloc_rival_mass <= 0:
             return False
         r = SEARCH_PARTICLES.converge_radius_m
         mass = search.particles.mass_within(pred.x(), pred.y(), 2.0 * r,
-                                            (loc.x_m, loc.y_m, r) if cfg.reloc_rival_outside_answer else None)
+                                            (loc.x_m, loc.y_m, r))
         if mass < cfg.reloc_rival_mass:
             return False
         log.info("t=%.1f s: the search prefers a place %.0f m away but still holds %.0f%% of its posterior at the "
@@ -264,11 +262,11 @@ class MapSearch:
         self._watch_last = loc
 
     def _search_beside_gps(self, k: int, pred: gtsam.Pose3) -> None:
-        """While GPS comes: no search unless the estimate is lost (``reloc_under_gps``); then one runs, fed but
+        """While GPS comes: no search unless the estimate is lost; then one runs, fed but
         never acted on, so that when GPS falls silent its particles already know where the odometry's path fits
         the roads (a fix window sharing one bias keeps the estimate off the roads long before GPS ends)."""
         assoc, search = self._association, self.search
-        if not self.cfg.reloc_under_gps or self._estimate.alignment is None or not (assoc.lost or self._beside_gps):
+        if self._estimate.alignment is None or not (assoc.lost or self._beside_gps):
             search.stop()
             self._beside_gps = False
             return

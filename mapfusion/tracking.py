@@ -111,7 +111,7 @@ class RoadFixes:
         self._ref_pending = False  # the reference's estimate is taken at the next frame (after the fix's update)
         self._after_reanchoring = False  # the next start follows a re-anchoring: it waits for a steady heading
         self._pending: tuple[float, float, float] | None = None  # odometry pose a start's steadiness is measured from
-        self._near_only = False  # this frame: no fix far from the estimate (road_fix_trust_fit)
+        self._near_only = False  # this frame: no fix far from the estimate (an estimate kept to the roads)
         self._ref_slack_m = 0.0  # how far from the reference an answer may lie besides drift (the start's radius)
 
     def gps_used(self, t: float) -> None:
@@ -146,7 +146,7 @@ class RoadFixes:
             self.drop()
             return None
         a = estimate.aligned
-        near_only = cfg.map_relocalisation and cfg.road_fix_trust_fit and kept_to_roads()
+        near_only = cfg.map_relocalisation and kept_to_roads()
         fix = self.step(k, t, planar_of(raw), a.scale, pred, estimate.pos_sigma_m, near_only=near_only,
                         yaw_sigma_rad=estimate.yaw_sigma_rad)
         if fix is None:
@@ -160,7 +160,7 @@ class RoadFixes:
              sigma_m: float, near_only: bool = False, yaw_sigma_rad: float = math.inf) -> gtsam.NonlinearFactor | None:
         """Frame k at time t: the odometry's raw planar pose (its own units and frame), the estimate's scale
         (metres per odometry unit), the predicted pose and its positional σ (m); ``near_only``: no fix farther
-        than ``road_fix_agree_m`` from the estimate (``road_fix_trust_fit``);
+        than ``road_fix_agree_m`` from the estimate (with ``map_relocalisation``, while the estimate kept to the roads);
         ``yaw_sigma_rad``: the estimate's marginal yaw σ (for ``road_fix_heading_sigma_deg``). Returns a fix on
         frame k, or None."""
         cfg = self.cfg
