@@ -16,17 +16,17 @@ import time
 
 import numpy as np
 
-from mapfusion import FusionConfig, RoadMap
+from mapfusion import RoadMap
 from mapfusion.maps import resolve_map
 from mapfusion.relocalise import Region, RoadParticles
-from mapfusion.tracking import particle_config
+from mapfusion.tracking import ROAD_FIX_PARAMS, particle_config
 
 
 def main(steps: int = 150) -> None:
     road = RoadMap.from_osm(resolve_map("helsinki"))
     # the road fixes' own view of the filter, at a fixed count (no KLD-sampling) and the start's count as
     # when this benchmark was written (its answers' hash stays comparable across checkouts)
-    cfg = dataclasses.replace(particle_config(FusionConfig()), kld_epsilon=0.0, particles=60000)
+    cfg = dataclasses.replace(particle_config(ROAD_FIX_PARAMS), kld_epsilon=0.0, particles=60000)
     p = RoadParticles(road, cfg, 0)
     p.start(Region(81.0, -429.0, 182.0), 0.3, scale_range=(1 / 1.3, 1.3))
     answers = []

@@ -1,6 +1,5 @@
 """What the road fixes cost the engine (issues 16 and 21): ``bench_engine``'s drive (GPS for 120 s, then
-odometry with a lateral drift) with the road fixes on (and their start's count as before
-``road_fix_particles``) and off, beside the bare GTSAM chain of the same
+odometry with a lateral drift) with the road fixes on and off, beside the bare GTSAM chain of the same
 process, on the bench's synthetic grid city and on Helsinki. Prints one JSON object a line.
 
 Run:  python benchmarks/bench_road_fixes.py [DURATION_S]      (default 600 s of driving)
@@ -24,10 +23,7 @@ def main(duration_s: float = 600.0) -> None:
     roads.append(("helsinki", RoadMap.from_osm(resolve_map("helsinki"))))
     for name, road in roads:
         bare = bench_bare_chain(road, duration_s=duration_s)
-        # the defaults; the start's count uncapped as before 2026-11-25 (road_fix_particles); the road fixes off
-        for label, cfg in (("on", FusionConfig()),
-                           ("on, road_fix_particles 60000", FusionConfig(road_fix_particles=60000)),
-                           ("off", FusionConfig(road_fixes=False))):
+        for label, cfg in (("on", FusionConfig()), ("off", FusionConfig(road_fixes=False))):
             e = bench_engine(road, duration_s=duration_s, config=cfg)
             print(json.dumps({"map": name, "road_fixes": label, "frames_per_s": e.frames_per_s, "growth": e.growth,
                               "bare_chain_frames_per_s": bare, "ratio_to_bare": e.frames_per_s / bare}), flush=True)

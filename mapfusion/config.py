@@ -315,6 +315,22 @@ _FIXED_KEYS: dict[str, str] = {
     "reloc_converge_radius_m": "mapfusion.relocalise.ParticleParams.converge_radius_m = 25.0 m",
     "reloc_converge_mass": "mapfusion.relocalise.ParticleParams.converge_mass = 0.8",
     "reloc_min_distance_m": "mapfusion.relocalise.ParticleParams.min_distance_m = 100.0 m",
+    "road_fix_particles": "mapfusion.tracking.RoadFixParams.particles = 20000",
+    "road_fix_radius_m": "mapfusion.tracking.RoadFixParams.radius_m = 50.0 m",
+    "road_fix_radius_max_m": "mapfusion.tracking.RoadFixParams.radius_max_m = 2000.0 m",
+    "road_fix_scale_factor": "mapfusion.tracking.RoadFixParams.scale_factor = 1.3",
+    "road_fix_every_m": "mapfusion.tracking.RoadFixParams.every_m = 5.0 m",
+    "road_fix_min_mass": "mapfusion.tracking.RoadFixParams.min_mass = 0.8",
+    "road_fix_restart_m": "mapfusion.tracking.RoadFixParams.restart_m = 300.0 m",
+    "road_fix_agree_m": "mapfusion.tracking.RoadFixParams.agree_m = 20.0 m",
+    "road_fix_agree_widths": "mapfusion.tracking.RoadFixParams.agree_widths = 2.5",
+    "road_fix_rival_mass": "mapfusion.tracking.RoadFixParams.rival_mass = 0.05",
+    "road_fix_sigma_m": "mapfusion.tracking.RoadFixParams.sigma_m = 3.0 m",
+    "road_fix_offset_max_deg": "mapfusion.tracking.RoadFixParams.offset_max_deg = 5.0 deg",
+    "road_fix_scale_gain": "mapfusion.tracking.RoadFixParams.scale_gain = 0.02",
+    "road_fix_drift": "mapfusion.tracking.RoadFixParams.drift = 0.1",
+    "road_fix_heading_sigma_deg": "mapfusion.tracking.RoadFixParams.heading_sigma_deg = 0.0 deg",
+    "road_fix_heading_floor": "mapfusion.tracking.RoadFixParams.heading_floor = 0.01",
     "planar_steps": "level (mapfusion.track.track_for: body and world were measured worse)",
 }
 
@@ -908,75 +924,6 @@ class FusionConfig:
                              "confident position enters the graph as a fix: the map's own answer to where the "
                              "vehicle is, from the odometry's shape over many junctions, independent of the "
                              "estimate's single road association.", source="issue 16 items 3-4, issue 17 (Lost!)")
-    road_fix_particles: int = param(20000, "reloc_particles for the road fixes' particles: the most a start spreads "
-                                    "over its region's roads (before the scale bands multiply it); a region grown "
-                                    "by a long stretch without a fix is covered more thinly instead of costing "
-                                    "more.", min=10, max=2_000_000,
-                                    source="issue 21: 60-run sets, 60000 / 20000 / 8000: seeds 1-10 7.35 / 7.21 / "
-                                    "8.10 m, fusion 132 / 122 / 116 s; held-out 11-20 6.32 / 6.32 m, 135 / 122 s")
-    road_fix_radius_m: float = param(50.0, "Radius of the region around the estimate the particles start in (at "
-                                     "least 3 × the estimate's positional σ).", unit="m", min=1.0, max=100000.0,
-                                     source="issue 16; by measurement")
-    road_fix_radius_max_m: float = param(2000.0, "Largest region the particles start in, however long the drive "
-                                         "went without a fix: wider, road_fix_particles cover it too thinly to "
-                                         "converge, and their cost keeps growing as they spread over the map "
-                                         "(finding a vehicle that far off is map_relocalisation's search).",
-                                         unit="m", min=1.0, max=100000.0,
-                                         source="issue 21: a one-hour drive whose fixes never came (mapfusion bench)")
-    road_fix_scale_factor: float = param(1.3, "The particles' scales start within the estimate's scale ×/÷ this "
-                                         "(a monocular VO's scale wanders by tens of percent).", min=1.0, max=10.0,
-                                         source="issue 16 item 3; real TrianFlow scale 25-31 on KITTI 00")
-    road_fix_every_m: float = param(5.0, "Driving between two fixes.", unit="m", min=0.5, max=10000.0,
-                                    source="issue 16; by measurement")
-    road_fix_min_mass: float = param(0.8, "Posterior mass within road_fix_cluster_m a fix needs.", min=0.0,
-                                     exclusive_min=True, max=1.0, source="issue 16; as reloc_converge_mass")
-    road_fix_restart_m: float = param(300.0, "Particles that gave no confident answer over this much driving start "
-                                      "again around the estimate (a posterior spread for long gathers again on "
-                                      "look-alike roads far away).", unit="m", min=1.0, max=1e6,
-                                      source="issue 16; real TrianFlow on KITTI 01")
-    road_fix_agree_m: float = param(20.0, "No fix while the estimate lies on a road (within road_fix_agree_widths "
-                                    "of its centre line, its heading within prior_max_angle_deg) this close to the "
-                                    "particles' answer: a right estimate is not pulled to the particles' own errors "
-                                    "(0: a fix whenever confident).", unit="m", min=0.0, max=100000.0,
-                                    source="issue 16: KITTI's ground truth as odometry bent 0.37 -> 3.43 m without it")
-    road_fix_agree_widths: float = param(2.5, "How far from a road's centre line the estimate still lies on it, for "
-                                         "road_fix_agree_m, in road widths (lanes × lane_width_m): OSM's centre "
-                                         "line of an untagged two-way street is one 3 m lane, and a tracked estimate "
-                                         "strays 3-5 m from it.", min=0.0, max=100.0,
-                                         source="issue 16: simulated VO on KITTI 00/02/05 (1 width: 2.9 -> 4.0 m, "
-                                         "5.3 -> 7.1 m; 2.5: unchanged) and 60 runs seeds 1-10 (10.8 m; "
-                                         "any distance: 11.7 m)")
-    road_fix_rival_mass: float = param(0.05, "No fix farther than road_fix_agree_m from the estimate while the "
-                                       "particles hold at least this share of their posterior within half that "
-                                       "distance of the estimate (outside the answer's road_fix_cluster_m): they "
-                                       "have not ruled its place out, only "
-                                       "preferred another (a parallel road, a wrong scale) (0: no such test).",
-                                       min=0.0, max=1.0, source="issue 16: Helsinki VIO clear-full s3, fixes 43 m "
-                                       "off with 15% of the posterior at the estimate; by measurement")
-    road_fix_sigma_m: float = param(3.0, "Smallest σ of a fix (per axis; the cluster's spread when larger).",
-                                    unit="m", min=0.01, max=1000.0, source="issue 16; by measurement")
-    road_fix_offset_max_deg: float = param(5.0, "Largest heading innovation the road fixes' particles' offsets follow "
-                                           "in one step: a slow drift is followed, a turn the road did not make "
-                                           "(the vehicle turned where a particle went straight) is not absorbed.",
-                                           unit="deg", min=0.0, max=180.0,
-                                           source="issue 16: Helsinki seed 5 (90° absorbed in five steps)")
-    road_fix_scale_gain: float = param(0.02, "Each road fix moves the engine's odometry scale this fraction of the way "
-                                       "(in log) to the fix's cluster's scale: the map keeps observing the scale "
-                                       "after GPS ends (0: the scale GPS measured stays).", min=0.0, max=1.0,
-                                       source="issue 16 item 3")
-    road_fix_drift: float = param(0.1, "What the odometry may drift, as a fraction of the distance driven: the "
-                                  "gate's allowance since its last answer, and a restart's radius (× 3) since the "
-                                  "last fix (GPS's or a road fix).", min=0.0,
-                                  max=10.0, source="issue 16; real TrianFlow drifts 10-12% (KITTI t_err)")
-    road_fix_heading_sigma_deg: float = param(
-        0.0, "The particles start weighted by the estimate's heading: a Gaussian of this σ (or 3 × the smoother's "
-        "marginal yaw σ, when larger) in the angle between each particle's heading (its road's, in its direction) "
-        "and the estimate's, above road_fix_heading_floor. Without it a start spreads both ways along every road "
-        "of its region, and on a regular grid the mirrored and turned copies of the path fit the odometry as well as "
-        "the true one for ever; 0: off.", unit="deg", min=0.0, max=180.0, source="issue 21: the bench's grid city")
-    road_fix_heading_floor: float = param(0.01, "With road_fix_heading_sigma_deg: the share of a start's weight a "
-                                          "particle keeps however far its heading lies from the estimate's (an "
-                                          "estimate's heading may be wrong).", min=0.0, max=1.0, source="issue 21")
     # --- initialisation details (issue 15: every number the engine uses is a documented field)
     init_stall_s: float = param(
         5.0,

@@ -180,7 +180,7 @@ class ParticleParams:
     offset_sigma_deg: float = 0.3
 
     #: Largest heading innovation a particle's offset follows in one step (180: any; the road fixes' particles take
-    #: road_fix_offset_max_deg). Unit: deg. Source: issue 16.
+    #: RoadFixParams.offset_max_deg). Unit: deg. Source: issue 16.
     offset_max_deg: float = 180.0
 
     #: Probability that a particle on a two-way road turns back in one step (0: only at a dead end; the road fixes'

@@ -320,9 +320,9 @@ def test_run_writes_every_contract_file(tmp_path):
 
 def test_bench_refuses_a_bad_engine_configuration_before_measuring(tmp_path):
     cfg = tmp_path / "bad.toml"
-    cfg.write_text("[mapfusion]\nroad_fix_heading_sigma_deg = -5.0\n")
+    cfg.write_text("[mapfusion]\nheading_prior_sigma_deg = -5.0\n")
     r = runner.invoke(app, ["bench", "--config", str(cfg)])
-    assert r.exit_code == 2 and "road_fix_heading_sigma_deg" in r.stderr
+    assert r.exit_code == 2 and "heading_prior_sigma_deg" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.output
 
 

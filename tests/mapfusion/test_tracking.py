@@ -16,11 +16,12 @@ from hypothesis import strategies as st
 from mapfusion import FusionConfig, MapFusion, RoadMap
 from mapfusion.counters import Counters
 from mapfusion.relocalise import SEARCH_PARTICLES, Located
-from mapfusion.tracking import RoadFixes
+from mapfusion.tracking import ROAD_FIX_PARAMS, RoadFixes
 from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
 
 ON = FusionConfig(road_fixes=True)
 OFF = FusionConfig(road_fixes=False)
+P = ROAD_FIX_PARAMS
 
 
 @pytest.fixture(scope="module")
@@ -39,9 +40,11 @@ def _wandering(road, seed, length_m=2500.0, gps_frames=400, scale_after=1.2):
     return x, y, ox, oy, oyaw
 
 
-def _run(road, cfg, x, y, ox, oy, oyaw, gps_frames):
-    """The engine over the drive: (engine, mean online error after GPS, final error)."""
+def _run(road, cfg, x, y, ox, oy, oyaw, gps_frames, params=ROAD_FIX_PARAMS):
+    """The engine over the drive (its road fixes built with ``params``): (engine, mean online error after GPS,
+    final error)."""
     eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
+    eng._road_fixes.params = params
     errs = []
     for k in range(len(x)):
         if k % 10 == 0 and k < gps_frames:
@@ -57,21 +60,21 @@ def _run(road, cfg, x, y, ox, oy, oyaw, gps_frames):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("widths", [1.0, ON.road_fix_agree_widths])
+@pytest.mark.parametrize("widths", [1.0, P.agree_widths])
 def test_road_fixes_hold_a_drive_whose_scale_wandered_after_gps(road, widths):
     """Four drives whose odometry's scale moves 20% from the one GPS measured once GPS ends: without road
     fixes the estimate runs along (and off) the roads — mean online error after GPS 54 m over the four when
     measured, each over 10 m; with them it stays near the roads' answer and the map re-measures the scale.
-    With fixes wherever the estimate strays beyond the road's width (road_fix_agree_widths 1) 9.5 m when
+    With fixes wherever the estimate strays beyond the road's width (RoadFixParams.agree_widths 1) 9.5 m when
     measured: at most 12 m. The default lets an estimate stray 2.5 widths before a fix (the simulated VO on
     KITTI's drives was pulled to the particles' errors): 14.1 m when measured; under a third of the error
     without, and better on every drive, in both."""
-    on_cfg = dataclasses.replace(ON, road_fix_agree_widths=widths)
+    on_params = dataclasses.replace(P, agree_widths=widths)
     off_errs, on_errs = [], []
     for seed in (1, 2, 3, 4):
         drive = _wandering(road, seed)
         _, off, _ = _run(road, OFF, *drive, 400)
-        on_eng, on, _ = _run(road, on_cfg, *drive, 400)
+        on_eng, on, _ = _run(road, ON, *drive, 400, on_params)
         assert on_eng.counters.road_fixes > 0
         assert on < off, (seed, off, on)
         off_errs.append(off)
@@ -85,9 +88,9 @@ def test_road_fixes_hold_a_drive_whose_scale_wandered_after_gps(road, widths):
 @pytest.mark.slow
 def test_the_map_re_measures_a_scale_that_wandered(road):
     """After GPS the odometry reports 1/1.2 of each metre: the fixes' clusters carry the scale, and the engine's
-    scale moves from GPS's (1) towards 1.2 — with road_fix_scale_gain 0 it stays where GPS left it."""
+    scale moves from GPS's (1) towards 1.2 — with RoadFixParams.scale_gain 0 it stays where GPS left it."""
     drive = _wandering(road, 1)
-    fixed, _, _ = _run(road, dataclasses.replace(ON, road_fix_scale_gain=0.0), *drive, 400)
+    fixed, _, _ = _run(road, ON, *drive, 400, dataclasses.replace(P, scale_gain=0.0))
     on, _, _ = _run(road, ON, *drive, 400)
     assert fixed.scale == pytest.approx(1.0, abs=0.03)
     assert on.scale > fixed.scale + 0.08
@@ -107,30 +110,29 @@ def test_no_fix_while_gps_comes(road):
 @given(seed=st.integers(0, 10_000), scale=st.floats(0.8, 1.25))
 def test_a_fix_comes_only_from_a_confident_posterior_and_is_never_tighter_than_its_floor(road, seed, scale):
     """Whatever the drive and the odometry's scale error: each fix is given only when one disc holds the
-    configured mass, its σ is at least road_fix_sigma_m and its place lies on the map's roads."""
+    configured mass, its σ is at least RoadFixParams.sigma_m and its place lies on the map's roads."""
     x, y, yaw, _ = graph_route(road, seed, 600.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, scale=scale, heading_rad=0.4, noise_m=0.02)
-    cfg = dataclasses.replace(ON, road_fix_every_m=10.0, road_fix_agree_m=0.0)  # (the estimate is the truth)
-    fixes = RoadFixes(road, cfg, Counters())
+    params = dataclasses.replace(P, every_m=10.0, agree_m=0.0)  # (the estimate is the truth)
+    fixes = RoadFixes(road, ON, Counters(), params)
     for k in range(len(x)):
         pred = gtsam.Pose3(gtsam.Rot3.Yaw(float(yaw[k])), gtsam.Point3(float(x[k]), float(y[k]), 0.0))
         f = fixes.step(k, 0.1 * k + 10.0, (float(ox[k]), float(oy[k]), float(oyaw[k])), 1.0, pred, 1.0)
         if f is None:
             continue
         loc = fixes.last
-        assert loc is not None and loc.mass >= cfg.road_fix_min_mass
+        assert loc is not None and loc.mass >= params.min_mass
         sigma = 1.0 / math.sqrt(f.noiseModel().precisions()[0])
-        assert sigma >= cfg.road_fix_sigma_m - 1e-9
+        assert sigma >= params.sigma_m - 1e-9
         assert np.min(np.hypot(road.xy_m[:, 0] - f.measurementIn()[0], road.xy_m[:, 1] - f.measurementIn()[1])) <= 1.5
     assert fixes.starts >= 1
 
 
 def test_particles_without_a_confident_answer_start_again_around_the_estimate(road):
-    """Particles that give no fix for road_fix_restart_m (the odometry zig-zags where no road does: the
+    """Particles that give no fix for RoadFixParams.restart_m (the odometry zig-zags where no road does: the
     posterior spreads, or its answer runs away from the estimate) are dropped: they start again where the
     estimate is."""
-    cfg = dataclasses.replace(ON, road_fix_restart_m=100.0, road_fix_every_m=10.0)
-    fixes = RoadFixes(road, cfg, Counters())
+    fixes = RoadFixes(road, ON, Counters(), dataclasses.replace(P, restart_m=100.0, every_m=10.0))
     x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
     fixes.step(0, 10.0, (0.0, 0.0, 0.0), 1.0, gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0)), 1.0)
     assert fixes.starts == 1
@@ -145,13 +147,13 @@ def test_particles_without_a_confident_answer_start_again_around_the_estimate(ro
 @given(seed=st.integers(0, 10_000), rival=st.floats(0.0, 0.5), threshold=st.sampled_from([0.0, 0.05, 0.2]),
        near_only=st.booleans())
 def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road, seed, rival, threshold, near_only):
-    """An answer farther than road_fix_agree_m from the estimate is a fix only when the particles have ruled the
+    """An answer farther than RoadFixParams.agree_m from the estimate is a fix only when the particles have ruled the
     estimate's place out: their posterior mass near the estimate (outside the answer's own disc) is under
-    road_fix_rival_mass (0: always a fix). And never when the step says ``near_only`` (with map_relocalisation, while
-    the estimate's recent path kept to the roads)."""
+    RoadFixParams.rival_mass (0: always a fix). And never when the step says ``near_only`` (with
+    map_relocalisation, while the estimate's recent path kept to the roads)."""
     from mapfusion.relocalise import RoadParticles
 
-    cfg = dataclasses.replace(ON, road_fix_rival_mass=threshold)
+    cfg = ON
     rng = np.random.default_rng(seed)
     n_pts = int(np.count_nonzero(~road.is_join))
     i = int(rng.integers(n_pts))  # the estimate, on a way-point; the answer 40-60 m away on another
@@ -167,7 +169,7 @@ def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road
     p.along, p.offset, p.log_scale = road.s_m[at].astype(np.float64), np.zeros(n), np.zeros(n)
     w = np.where(at == i, rival, 1.0 - rival) / (n // 2) + 1e-300
     p.logw = np.log(w / w.sum())
-    fixes = RoadFixes(road, cfg, Counters())
+    fixes = RoadFixes(road, cfg, Counters(), dataclasses.replace(P, rival_mass=threshold))
     fixes.particles = p
     xj, yj = (float(v) for v in road.xy_m[j])
     loc = Located(xj, yj, 0.0, 0.0, int(road.edge[j]), 1, float(road.s_m[j]), 1.0 - rival, 1.0, 0.0, 100.0)
@@ -181,11 +183,10 @@ def test_a_far_answer_is_no_fix_while_the_particles_still_hold_the_estimate(road
 @given(cap=st.integers(10, 5_000), sigma_m=st.floats(1.0, 2000.0), factor=st.floats(1.0, 2.0))
 def test_a_start_spreads_at_most_road_fix_particles_per_scale_band(road, cap, sigma_m, factor):
     """However large the region a start covers (3 σ of the estimate), the particles it spreads are at most
-    road_fix_particles per scale band (issue 21: a region grown by a long stretch without a fix costs no more);
+    RoadFixParams.particles per scale band (issue 21: a region grown by a long stretch without a fix costs no more);
     a cap under the 1000 a start spreads at least is the count itself."""
     from mapfusion.relocalise import SCALE_BAND
-    cfg = dataclasses.replace(ON, road_fix_particles=cap, road_fix_scale_factor=factor)
-    fixes = RoadFixes(road, cfg, Counters())
+    fixes = RoadFixes(road, ON, Counters(), dataclasses.replace(P, particles=cap, scale_factor=factor))
     x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
     fixes.step(0, 10.0, (0.0, 0.0, 0.0), 1.0, gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0)), sigma_m)
     bands = max(1.0, 2.0 * math.log(factor) / math.log(SCALE_BAND))
@@ -199,30 +200,30 @@ def test_a_start_spreads_at_most_road_fix_particles_per_scale_band(road, cap, si
 @given(unfixed_m=st.floats(0.0, 20000.0), sigma_m=st.floats(0.5, 1000.0))
 def test_a_re_anchoring_restarts_the_particles_around_the_new_estimate_in_the_start_radius(road, unfixed_m, sigma_m):
     """A start after a long stretch without a fix spreads over 3 × the drift since (the estimate may be that far
-    off), up to road_fix_radius_max_m; after a re-anchoring the estimate is placed afresh, so the next start's
+    off), up to RoadFixParams.radius_max_m; after a re-anchoring the estimate is placed afresh, so the next start's
     region is the start radius (or 3 σ) again, not the old drift's."""
     fixes = RoadFixes(road, ON, Counters())
     x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0))
     fixes._unfixed_m = unfixed_m
     fixes.step(0, 10.0, (0.0, 0.0, 0.0), 1.0, pred, sigma_m)
-    grown = min(max(ON.road_fix_radius_m, 3.0 * sigma_m, 3.0 * ON.road_fix_drift * unfixed_m), ON.road_fix_radius_max_m)
+    grown = min(max(P.radius_m, 3.0 * sigma_m, 3.0 * P.drift * unfixed_m), P.radius_max_m)
     assert fixes.starts == 1 and fixes._ref_slack_m == pytest.approx(grown)
     fixes.reanchored()
     assert fixes.particles is None
     fixes.step(1, 10.1, (0.0, 0.0, 0.0), 1.0, pred, sigma_m)
     # (a start after it waits for a straight step)
     fixes.step(2, 10.2, (SEARCH_PARTICLES.step_m, 0.0, 0.0), 1.0, pred, sigma_m)
-    assert fixes.starts == 2 and fixes._ref_slack_m == pytest.approx(min(max(ON.road_fix_radius_m, 3.0 * sigma_m),
-                                                                         ON.road_fix_radius_max_m))
+    assert fixes.starts == 2 and fixes._ref_slack_m == pytest.approx(min(max(P.radius_m, 3.0 * sigma_m),
+                                                                         P.radius_max_m))
 
 
 @settings(max_examples=20, deadline=None)
 @given(turn_deg_per_m=st.floats(1.5, 10.0), straight_m=st.floats(6.0, 30.0))
 def test_a_steady_start_waits_for_the_turn_to_end(road, turn_deg_per_m, straight_m):
-    """After a re-anchoring the particles do not start while the odometry turns by more than road_fix_offset_max_deg
-    over ParticleParams.step_m (here at least 7.5° per 5 m), and start once it has driven straight for
-    ParticleParams.step_m; a first start is on the first frame."""
+    """After a re-anchoring the particles do not start while the odometry turns by more than
+    RoadFixParams.offset_max_deg over ParticleParams.step_m (here at least 7.5° per 5 m), and start once it has
+    driven straight for ParticleParams.step_m; a first start is on the first frame."""
     x0, y0 = (float(v) for v in road.xy_m[len(road) // 2])
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0))
     fixes, eager = RoadFixes(road, ON, Counters()), RoadFixes(road, ON, Counters())
@@ -313,11 +314,11 @@ def _staircase(start_m: float, quarter_turns: int, length_m: float = 1500.0):
     return x, y, np.arctan2(np.gradient(y), np.gradient(x))
 
 
-def _confident_share(road, cfg, x, y, yaw, after_m=400.0):
+def _confident_share(road, params, x, y, yaw, after_m=400.0):
     """The road fixes fed an exact odometry of a drive, the estimate the truth (its yaw σ 1°): (share of the
     fixes' turns after ``after_m`` at which the particles were confident, starts, particles at the end)."""
     ox, oy, oyaw = drifting_odometry(x, y, yaw, 0, heading_rad=0.4)
-    fixes = RoadFixes(road, cfg, Counters())
+    fixes = RoadFixes(road, ON, Counters(), params)
     turns = confident = 0
     for k in range(len(x)):
         pred = gtsam.Pose3(gtsam.Rot3.Yaw(float(yaw[k])), gtsam.Point3(float(x[k]), float(y[k]), 0.0))
@@ -336,13 +337,13 @@ def test_on_a_regular_grid_the_estimates_heading_lets_the_particles_settle(grid_
     by 180° about a block's centre (or by 90° about a junction) fits the odometry as well as the true one for
     ever. Where such a copy lies within the start's region (50 m: not from every place in a block, and the
     particles' resampling may lose one copy by chance, so four starts where none was lost), over a drive that
-    turns at every junction the particles never agree on one place, start again every road_fix_restart_m over a
+    turns at every junction the particles never agree on one place, start again every RoadFixParams.restart_m over a
     wider region, and cost the most they may. Weighted by the estimate's heading
-    (road_fix_heading_sigma_deg) they agree after the first turns, settle to a few and never start again."""
+    (RoadFixParams.heading_sigma_deg) they agree after the first turns, settle to a few and never start again."""
     drive = _staircase(start_m, quarter_turns)
-    share_on, starts_on, n_on = _confident_share(grid_city, dataclasses.replace(ON, road_fix_heading_sigma_deg=20.0),
+    share_on, starts_on, n_on = _confident_share(grid_city, dataclasses.replace(P, heading_sigma_deg=20.0),
                                                  *drive)
-    share_off, starts_off, n_off = _confident_share(grid_city, dataclasses.replace(ON, road_fix_heading_sigma_deg=0.0),
+    share_off, starts_off, n_off = _confident_share(grid_city, dataclasses.replace(P, heading_sigma_deg=0.0),
                                                     *drive)
     assert share_on >= 0.9 and starts_on == 1 and n_on <= 2000, (share_on, starts_on, n_on)
     assert share_off <= 0.1 and starts_off >= 3 and n_off >= 5 * n_on, (share_off, starts_off, n_off)
@@ -354,14 +355,13 @@ def test_on_a_regular_grid_the_estimates_heading_lets_the_particles_settle(grid_
 def test_a_start_weighs_each_particle_by_its_heading_against_the_estimates(road, frac, turn, sigma_deg, floor,
                                                                            yaw_sigma_deg):
     """Every particle's start weight falls with the angle between its heading and the estimate's, over a
-    σ of road_fix_heading_sigma_deg (or 3 × the marginal yaw σ): any particle within 1 σ outweighs any
+    σ of RoadFixParams.heading_sigma_deg (or 3 × the marginal yaw σ): any particle within 1 σ outweighs any
     beyond 3 σ by at least the Gaussian's ratio under the floor; without the weighting all weigh the same."""
     i = int(frac * (len(road) - 1))
     heading = float(road.yaw_rad[i]) + turn
     pred = gtsam.Pose3(gtsam.Rot3.Yaw(heading), gtsam.Point3(float(road.xy_m[i, 0]), float(road.xy_m[i, 1]), 0.0))
     for deg in (0.0, sigma_deg):
-        cfg = dataclasses.replace(ON, road_fix_heading_sigma_deg=deg, road_fix_heading_floor=floor)
-        fixes = RoadFixes(road, cfg, Counters())
+        fixes = RoadFixes(road, ON, Counters(), dataclasses.replace(P, heading_sigma_deg=deg, heading_floor=floor))
         fixes.step(0, 10.0, (0.0, 0.0, 0.0), 1.0, pred, 1.0, yaw_sigma_rad=math.radians(yaw_sigma_deg))
         p = fixes.particles
         assert p is not None and len(p) > 0
