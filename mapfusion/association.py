@@ -26,6 +26,7 @@ from .counters import Counters
 from .geometry import on_line
 from .matcher import Match, lateral_bound_ok, map_pose, match, match_candidates
 from .roadmap import RoadMap
+from . import relocalise
 
 #: Half-width of the band the edge and band targets use, as a fraction of the road width (lanes × lane width): 0.5
 #: is the road's own half-width, 1 the paper's trigger distance. Source: issue 16; by measurement.
@@ -36,7 +37,7 @@ PRIOR_BAND_FRACTION = 1.0
 HEADING_PRIOR_MAX_DEG = 10.0
 
 
-#: Distances within this of reloc_gps_fit_m count as covering it (the running sums' rounding decides nothing).
+#: Distances within this of SearchParams.gps_fit_m count as covering it (the running sums' rounding decides nothing).
 FIT_TIE_M = 1e-6
 
 #: Floor of the band prior's σ across the road: the moment-matched factor of an estimate far
@@ -73,7 +74,7 @@ class MapAssociation:
         self.explained_xy: tuple[float, float] | None = None  # the estimate where a road last explained it
         self._since_prior_m = math.inf  # odometry distance since the last map prior
         self._since_heading_m = math.inf  # odometry distance since the last heading prior
-        # the estimate's recent path: (distance, on a road?) per frame over the last reloc_gps_fit_m
+        # the estimate's recent path: (distance, on a road?) per frame over the last SearchParams.gps_fit_m
         self._fit: collections.deque[tuple[float, bool]] = collections.deque()
         self._fit_m = self._fit_on_m = 0.0
 
@@ -100,31 +101,34 @@ class MapAssociation:
             self.counters.lost_events += 1
 
     def _record_fit(self, m: Match | None, moved_m: float) -> None:
-        """One frame of the estimate's path: on a road (within its width + ``reloc_gps_fit_margin_m`` of the
-        centre line, its heading within ``prior_max_angle_deg``) or not, over the last ``reloc_gps_fit_m``."""
+        """One frame of the estimate's path: on a road (within its width + ``SearchParams.gps_fit_margin_m`` of the
+        centre line, its heading within ``prior_max_angle_deg``) or not, over the last ``SearchParams.gps_fit_m``."""
+        sp = relocalise.SEARCH_PARAMS
         cfg = self.cfg
         on = m is not None and m.angle_deg <= cfg.prior_max_angle_deg and \
-            m.lateral_m <= m.lanes * cfg.lane_width_m + cfg.reloc_gps_fit_margin_m
+            m.lateral_m <= m.lanes * cfg.lane_width_m + sp.gps_fit_margin_m
         self._fit.append((moved_m, on))
         self._fit_m += moved_m
         self._fit_on_m += moved_m if on else 0.0
-        while len(self._fit) > 1 and self._fit_m - self._fit[0][0] >= cfg.reloc_gps_fit_m - FIT_TIE_M:
+        while len(self._fit) > 1 and self._fit_m - self._fit[0][0] >= sp.gps_fit_m - FIT_TIE_M:
             d, was_on = self._fit.popleft()
             self._fit_m -= d
             self._fit_on_m -= d if was_on else 0.0
 
     def road_fit(self) -> float | None:
-        """The share of the estimate's last ``reloc_gps_fit_m`` of driving that lay on a road (None before any
+        """The share of the estimate's last ``SearchParams.gps_fit_m`` of driving that lay on a road (None before any
         driving)."""
         if self._fit_m <= 0.0:
             return None
         return min(max(self._fit_on_m / self._fit_m, 0.0), 1.0)
 
     def kept_to_roads(self) -> bool:
-        """At least ``reloc_gps_fit_min`` of the estimate's last ``reloc_gps_fit_m`` lay on a road (False where the
-        share is not measured: before any driving, or with ``map_relocalisation`` or ``reloc_gps_fit_min`` off)."""
+        """At least ``SearchParams.gps_fit_min`` of the estimate's last ``SearchParams.gps_fit_m`` lay on a road (False
+        where the share is not measured: before any driving, or with ``map_relocalisation`` or
+        ``SearchParams.gps_fit_min`` off)."""
+        sp = relocalise.SEARCH_PARAMS
         fit = self.road_fit()
-        return self.cfg.reloc_gps_fit_min > 0 and fit is not None and fit >= self.cfg.reloc_gps_fit_min
+        return sp.gps_fit_min > 0 and fit is not None and fit >= sp.gps_fit_min
 
     @property
     def unexplained_m(self) -> float:
@@ -169,12 +173,13 @@ class MapAssociation:
     def prior(self, k: int, pred: gtsam.Pose3, step: gtsam.Pose3, dt_s: float, pos_sigma_m: float,
               lat_sigma_m: float = 0.0) -> tuple[Match | None, gtsam.PriorFactorPose3 | None]:
         """The match of frame k's predicted pose and, if the map should correct it, its prior."""
+        sp = relocalise.SEARCH_PARAMS
         moved_m = math.hypot(step.x(), step.y())
         m = self.match(pred)
         if self.cfg.map_relocalisation:  # (lost is watched for only where it is acted on)
             self._watch_lost(m is not None and m.cost <= self.cfg.lost_cost_m, moved_m, pred)
         self._since_prior_m += moved_m
-        if self.cfg.map_relocalisation and self.cfg.reloc_gps_fit_min > 0:
+        if self.cfg.map_relocalisation and sp.gps_fit_min > 0:
             self._record_fit(m, moved_m)
         if m is None:
             return None, None

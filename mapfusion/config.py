@@ -331,6 +331,25 @@ _FIXED_KEYS: dict[str, str] = {
     "road_fix_drift": "mapfusion.tracking.RoadFixParams.drift = 0.1",
     "road_fix_heading_sigma_deg": "mapfusion.tracking.RoadFixParams.heading_sigma_deg = 0.0 deg",
     "road_fix_heading_floor": "mapfusion.tracking.RoadFixParams.heading_floor = 0.01",
+    "reloc_confirm_m": "mapfusion.relocalise.SearchParams.confirm_m = 5.0 m",
+    "reloc_after_gps_s": "mapfusion.relocalise.SearchParams.after_gps_s = 10.0 s",
+    "reloc_gps_replay_m": "mapfusion.relocalise.SearchParams.gps_replay_m = 500.0 m",
+    "reloc_gps_fit_min": "mapfusion.relocalise.SearchParams.gps_fit_min = 0.75",
+    "reloc_gps_fit_m": "mapfusion.relocalise.SearchParams.gps_fit_m = 300.0 m",
+    "reloc_gps_fit_margin_m": "mapfusion.relocalise.SearchParams.gps_fit_margin_m = 3.0 m",
+    "reloc_register_ratio": "mapfusion.relocalise.SearchParams.register_ratio = 1.25",
+    "reloc_register_after_s": "mapfusion.relocalise.SearchParams.register_after_s = 2.0 s",
+    "reloc_register_place_m": "mapfusion.relocalise.SearchParams.register_place_m = 150.0 m",
+    "reloc_register_rms_m": "mapfusion.relocalise.SearchParams.register_rms_m = 4.0 m",
+    "reloc_register_separation_m": "mapfusion.relocalise.SearchParams.register_separation_m = 30.0 m",
+    "reloc_mend_keep_ratio": "mapfusion.relocalise.SearchParams.mend_keep_ratio = 0.5",
+    "reloc_doubt_m": "mapfusion.relocalise.SearchParams.doubt_m = 1000.0 m",
+    "reloc_watch_m": "mapfusion.relocalise.SearchParams.watch_m = 500.0 m",
+    "reloc_watch_apart_m": "mapfusion.relocalise.SearchParams.watch_apart_m = 50.0 m",
+    "reloc_rival_mass": "mapfusion.relocalise.SearchParams.rival_mass = 0.05",
+    "reloc_gap_speed_mps": "mapfusion.relocalise.SearchParams.gap_speed_mps = 15.0 m/s",
+    "reloc_gap_reach_sigmas": "mapfusion.relocalise.SearchParams.gap_reach_sigmas = 1.0",
+    "reloc_max_radius_m": "mapfusion.relocalise.SearchParams.max_radius_m = 2000.0 m",
     "planar_steps": "level (mapfusion.track.track_for: body and world were measured worse)",
 }
 
@@ -789,114 +808,6 @@ class FusionConfig:
                                    unit="m/unit", min=1e-6, max=1e6, source="issue 17 item 2")
     reloc_scale_max: float = param(1.0, "Largest odometry scale a cold start searches over (see reloc_scale_min).",
                                    unit="m/unit", min=1e-6, max=1e6, source="issue 17 item 2")
-    reloc_max_radius_m: float = param(2000.0, "Largest search region.", unit="m", min=1.0, max=100000.0,
-                                      source="issue 17: 2 km in a city at 10 Hz on one core")
-    reloc_confirm_m: float = param(5.0, "A re-localisation within this distance of the current estimate only "
-                                   "confirms it (no re-anchoring); farther, the estimate is re-anchored on it (the "
-                                   "search's answer is a cluster of a few metres' spread, placed by the path's turns).",
-                                   unit="m", min=0.0, max=10000.0,
-                                   source="issue 17: never move an estimate that was not lost; 5 m against 15 m: "
-                                          "kidnapped seeds 1-10 within 500 m 36 against 34 of 40, seeds 11-20 "
-                                          "after-error 7.27 against 7.43 m, none wrong")
-    reloc_after_gps_s: float = param(10.0, "With map_relocalisation: this long after the last GPS fix a search "
-                                     "around the estimate checks where GPS left it; while fixes come more often, "
-                                     "GPS places the estimate and no search runs (0: searches regardless of GPS).",
-                                     unit="s", min=0.0,
-                                     max=86400.0, source="issue 17: a biased fix window leaves the estimate off")
-    reloc_gps_replay_m: float = param(500.0, "With map_relocalisation: the search begun when GPS falls silent "
-                                      "(reloc_after_gps_s; only where GPS left the estimate off the roads, "
-                                      "reloc_gps_fit_min) starts this much driving back, around the estimate there, "
-                                      "and is fed the odometry since at once (from GPS's first fix at the earliest, "
-                                      "never across an odometry gap): a fix window that shared one bias is judged "
-                                      "on the path driven under it, not only on the path after it (0: the search "
-                                      "starts at the silence).", unit="m", min=0.0, max=100000.0,
-                                      source="issue 17: with reloc_gps_fit_min, kidnapped seeds 1-30, 0 / 250 / "
-                                      "500 m: within 500 m 77 / 84 / 85 of 120, runs re-anchored wrong 10 / 9 / 9, "
-                                      "ATE 51.9 / 52.6 / 53.1 m (without the fit test 250 m moved a good estimate "
-                                      "237 m on a drive whose VO scale changes by 20% after GPS)")
-    reloc_gps_fit_min: float = param(0.75, "With map_relocalisation: when GPS falls silent (reloc_after_gps_s), the "
-                                     "second opinion's search begins only if less than this share of the estimate's "
-                                     "last reloc_gps_fit_m of driving lay on a road (within its width + "
-                                     "reloc_gps_fit_margin_m of the centre line, heading within prior_max_angle_deg): "
-                                     "a path GPS placed on the roads is trusted, one it placed off them is searched "
-                                     "for (0: always search).", unit="1", min=0.0, max=1.0,
-                                     source="issue 17: the last 300 m before the silence on 36 runs of the 60-run "
-                                     "sets (GPS unbiased) 0.84-1.00 on a road, on 20 kidnapped runs with biased "
-                                     "fixes 0.00-0.41 and one 0.67")
-    reloc_gps_fit_m: float = param(300.0, "Driving over which reloc_gps_fit_min measures the estimate's path.",
-                                   unit="m", min=1.0, max=100000.0, source="issue 17: as reloc_radius_m")
-    reloc_gps_fit_margin_m: float = param(3.0, "How far beyond a road's width (lanes × lane_width_m) from its centre "
-                                          "line the estimate still lies on it, for reloc_gps_fit_min.", unit="m",
-                                          min=0.0, max=1000.0,
-                                          source="issue 17: a tracked estimate strays a lane from OSM's centre line")
-    reloc_register_ratio: float = param(1.25, "With map_relocalisation: when GPS falls quiet (reloc_register_after_s)"
-                                        " where it left the estimate off the roads (reloc_gps_fit_min, or lost beside "
-                                        "GPS; anywhere with reloc_register_on_roads), its fixes "
-                                        "of the last reloc_register_m are first registered on the roads "
-                                        "(mapfusion.register: the shift within reloc_radius_m that puts them nearest "
-                                        "the way-points); the estimate is moved by that shift, without a search, when "
-                                        "the best shift farther than reloc_register_separation_m from it fits this "
-                                        "many times worse (RMS), the shift itself fits within reloc_register_rms_m "
-                                        "and it is longer than reloc_register_separation_m (0: off; a search as "
-                                        "before).", unit="1", min=0.0, max=100.0,
-                                        source="issue 17: the fix windows of the kidnapped seeds 1-10 "
-                                        "(offline, mapfusion.register): the 19 of 20 biased windows found within "
-                                        "3.4 m of their bias had ratios 1.35-3.38, the one found 246 m off 1.04")
-    reloc_register_after_s: float = param(2.0, "The fixes are registered (reloc_register_ratio) this long after the "
-                                          "last one, once per last fix: soon, for the odometry carries the estimate "
-                                          "from the last fix to the re-anchoring (a VO's heading wanders a few "
-                                          "degrees in 10 s: 26 m off at 25 m/s when measured).", unit="s", min=0.0,
-                                          max=3600.0, source="issue 17: kidnapped GPS bias Kotka s7")
-    reloc_register_place_m: float = param(150.0, "A decisive registration places the odometry on the last fixes, "
-                                          "shifted, by a rigid fit (as a GPS re-localisation does): those back from "
-                                          "the last one to the first that lies this far from it in a straight line "
-                                          "(a longer stretch bends with the VO's heading wander; a shorter one, or "
-                                          "a standstill, leaves the heading undetermined).", unit="m", min=1.0,
-                                          max=100000.0, source="issue 17: kidnapped GPS bias Kotka s7 "
-                                          "(25 m/s), 2 s after the last fix 7.1 m off with 10 s of fixes, 10.7 m with "
-                                          "60 s; Helsinki s9, 10 s of fixes at a standstill turned the estimate 138°")
-    reloc_register_rms_m: float = param(4.0, "Largest RMS distance (each capped at 10 m) of the shifted fixes to "
-                                        "the roads' way-points for the registration to act.", unit="m", min=0.0,
-                                        max=10.0, source="issue 17: 2.1-3.0 m on the kidnapped seeds 1-10's windows "
-                                        "(GPS σ 2 m, vehicles 1.6 m right of the centre line)")
-    reloc_register_separation_m: float = param(30.0, "How far another shift must lie from the best to count as its "
-                                               "runner-up (reloc_register_ratio): nearer shifts are the same place.",
-                                               unit="m", min=1.0, max=10000.0,
-                                               source="issue 17: a few lane widths, under a block's length")
-    reloc_mend_keep_ratio: float = param(
-        0.5, "With reloc_mend_back: the searched path is not moved when the moved path's share of frames on a road "
-        "(every fifth frame matched within half its road's width plus a lane, heading within prior_max_angle_deg) "
-        "would fall below this fraction of its share as it is: an estimate the map's priors kept on its roads is not "
-        "swung off them about its end by the answer's heading (0: always moved, as before).", min=0.0, max=1.0,
-        source="issue 17: kidnapped VO jump Kotka s11, a re-anchoring turned 1,353 m of path from 68% "
-               "on the roads to 13% and its smoothed RMSE 18.7 -> 104.5 m; good mends measured 35-64% against 57-83% "
-               "(refused at ratio 1, docs/method.md)")
-    reloc_doubt_m: float = param(1000.0, "A search begun when the estimate is lost within this much driving after "
-                                 "a map re-anchoring also covers the region the re-anchoring's search ran in, grown "
-                                 "by the distance since: the re-anchoring may have been wrong (0: the lost region "
-                                 "only).", unit="m", min=0.0, max=100000.0,
-                                 source="issue 17: kidnapped seeds 1-10 / held-out 11-20, 0 / 1000 / 2000 m: "
-                                 "ATE 60.4 / 58.7 / 58.7 and 82.6 / 80.5 / 80.4 m")
-    reloc_watch_m: float = param(500.0, "A search that re-anchored the estimate goes on over this much more "
-                                 "driving, its posterior kept whole (its particles may now turn back, as the road "
-                                 "fixes' do): should its mass gather at another place (a look-alike path that the "
-                                 "road since has ruled out) more than reloc_watch_apart_m from the estimate, it "
-                                 "re-anchors there (0: a search ends when it converges).",
-                                 unit="m", min=0.0, max=100000.0,
-                                 source="issue 17: a wrong convergence stayed until the next lost event; "
-                                 "kidnapped seeds 1-10 / 11-20, 0 / 500 m: ATE 53.2 / 49.3 and 56.2 / 55.9 m, "
-                                 "wrong for 1,386 / 1,381 and 1,603 / 1,603 m at most, 4 runs better, none worse")
-    reloc_watch_apart_m: float = param(50.0, "How far from the estimate the watched posterior's answer must be to "
-                                       "re-anchor again (nearer: the same place, the tracking's own along-road "
-                                       "error).", unit="m", min=0.0, max=100000.0,
-                                       source="issue 17: twice reloc_converge_radius_m")
-    reloc_rival_mass: float = param(0.05, "No map re-anchoring while the search's posterior still holds at least "
-                                    "this share of its mass within 2 × reloc_converge_radius_m of the estimate: it "
-                                    "has not ruled the estimate's place out, only preferred another (a look-alike "
-                                    "path) (0: no such test).", min=0.0, max=1.0,
-                                    source="issue 17: as road_fix_rival_mass; kidnapped seeds 1-10 / held-out 11-20, "
-                                    "0 / 0.02 / 0.05 / 0.1: ATE 53.8 / 53.2 / 53.2 / 53.2 and 70.9 / 56.2 / 56.2 / "
-                                    "57.7 m, runs re-anchored wrong 4 / 3 / 3 / 3 and 8 / 5 / 5 / 6")
     reloc_gap_s: float = param(2.0, "An odometry gap longer than this (the VO lost track and re-initialised) opens "
                                "the GPS gate (two agreeing fixes re-anchor, back to the gap), takes the step across "
                                "it along the road (outage_step) and, with map_relocalisation, starts a search "
@@ -905,20 +816,6 @@ class FusionConfig:
                                "took the simulated VO's 2-3 s re-initialisations (it re-matches gaps up to 2 s) "
                                "for bridged, and a 2.3 s one's guessed turn lost Kotka heavy rain s2 (208 m; 4.8 m "
                                "at 2 s): 60 runs seeds 1-10 10.61 -> 7.35 m, held-out 11-20 6.30 -> 6.32 m")
-    reloc_gap_speed_mps: float = param(15.0, "Speed assumed through such a gap: the search region's radius is "
-                                       "reloc_gap_margin_m + this × the gap, and the opened GPS gate's σ at least "
-                                       "this × the gap.",
-                                       unit="m/s", min=0.0, max=100.0, source="issue 17: city speeds")
-    reloc_gap_reach_sigmas: float = param(
-        1.0,
-        "The search region after an odometry gap also reaches the step carried over it (outage_step) plus this many "
-        "of that step's σ (reloc_sigma_m + outage_step_fraction × its length): a vehicle may speed up in the gap, "
-        "and the carried step assumes the speeds at its ends; 0: the carried step's length alone.",
-        min=0.0, max=10.0,
-        source="issue 17: rain-tunnel Andorra vo s2 drove 27 m/s in a 106 s tunnel gap carried at "
-               "19-25 m/s; its search's 2,612 m region ended 300 m short of the vehicle and converged on a look-alike "
-               "860 m off",
-    )
     road_fixes: bool = param(True, "While GPS is silent, road-network particles (the re-localisation's, the "
                              "odometry's scale a state of each) follow the vehicle from the estimate, and their "
                              "confident position enters the graph as a fix: the map's own answer to where the "

@@ -22,6 +22,7 @@ import numpy as np
 
 from .config import FusionConfig, PriorMode, RobustKernel, StateModel
 from .track import OUTAGE_S
+from . import relocalise
 
 #: Least rotation σ of an outage step. Unit: deg. Source: by measurement.
 OUTAGE_ROT_SIGMA_DEG = 20.0
@@ -140,11 +141,12 @@ def between(k: int, step: gtsam.Pose3, noise: gtsam.noiseModel.Base) -> gtsam.Be
 def outage_sigma_m(cfg: FusionConfig, step: gtsam.Pose3, gap_s: float) -> float:
     """How far the estimate after an odometry outage may be from the truth (σ, m; 0 for an ordinary step):
     the step across it is a re-initialised odometry's guess (``outage_step_fraction`` of its length), and the
-    vehicle may have moved ``reloc_gap_speed_mps`` × the gap in any direction."""
+    vehicle may have moved ``SearchParams.gap_speed_mps`` × the gap in any direction."""
+    sp = relocalise.SEARCH_PARAMS
     if gap_s <= OUTAGE_S:
         return 0.0
     tr = step.translation()
-    return max(cfg.outage_step_fraction * math.sqrt(tr.dot(tr)), cfg.reloc_gap_speed_mps * gap_s)
+    return max(cfg.outage_step_fraction * math.sqrt(tr.dot(tr)), sp.gap_speed_mps * gap_s)
 
 
 def odometry_noise(cfg: FusionConfig, step: gtsam.Pose3, gap_frames: float, period_s: float, *,

@@ -24,10 +24,11 @@ from .roadmap import RoadMap
 from .track import Track, planar_of
 from .gps_gate import RELOCALISE_YAW_SIGMA_FLOOR_DEG
 from .relocalise import RELOC_RADIUS_M
+from . import relocalise
 
 log = logging.getLogger(__name__)
 
-#: Length of the fixes' path registered on the roads (reloc_register_ratio), back from the last fix. Unit: m.
+#: Length of the fixes' path registered on the roads (SearchParams.register_ratio), back from the last fix. Unit: m.
 #: Source: issue 17: the kidnapped family's fix windows (120 s, 250-900 m).
 RELOC_REGISTER_M = 1000.0
 
@@ -52,8 +53,8 @@ class MapAnchors:
                  fixes: tuple[list[tuple[float, float, int]], float] | None = None) -> None:
         """The smoother re-anchored at frame k on ``pose`` (σ ``sigma_m`` per axis, ``yaw_sigma_rad``) by the map (at
         frame ``now``, k by default: a re-anchoring may reach back), counted with the distance ``searched_m`` it took;
-        the final estimates from frame k0 on are moved with it (``pred``: frame k's estimate before), and ``region``
-        is where a later doubt looks again (``reloc_doubt_m``). ``fixes`` ((x, y, frame) in the map frame, and their
+        the final estimates from frame k0 on are moved with it (``pred``: frame k's estimate before), and ``region`` is
+        where a later doubt looks again (``SearchParams.doubt_m``). ``fixes`` ((x, y, frame) in the map frame, and their
         σ in m) enter the graph with it."""
         est = self._estimate
         now = k if now is None else now
@@ -72,9 +73,10 @@ class MapAnchors:
         """A map re-anchoring moved frame k1 from ``was`` to ``now``; its search matched the odometry's path from
         frame k0 on to the roads, so that path lies where the re-anchoring puts its end: the final estimates of
         frames k0 … k1-1 are moved rigidly by the same correction (about z) — unless the moved path would keep to the
-        roads less than ``reloc_mend_keep_ratio`` as well as the path as it was (an estimate the map's priors had
+        roads less than ``SearchParams.mend_keep_ratio`` as well as the path as it was (an estimate the map's priors had
         kept on its roads is not swung off them about its end by the answer's heading). The online estimates stay as
         they were (causal)."""
+        sp = relocalise.SEARCH_PARAMS
         sm, track = self._estimate.sm, self.track
         k0 = max(k0, track.first)
         dyaw = math.remainder(now.rotation().yaw() - was.rotation().yaw(), 2.0 * math.pi)
@@ -88,11 +90,11 @@ class MapAnchors:
             dx, dy = p.x() - was.x(), p.y() - was.y()
             moves[j] = gtsam.Pose3(turn.compose(p.rotation()),
                                    gtsam.Point3(now.x() + c * dx - s * dy, now.y() + s * dx + c * dy, p.z()))
-        if self.cfg.reloc_mend_keep_ratio > 0 and moves:
+        if sp.mend_keep_ratio > 0 and moves:
             keys = list(moves)[::5]  # (a sample: the share of a path on its roads, not each frame's)
             before = self._on_roads([p for j in keys if (p := sm.smoothed.get(j)) is not None])
             after = self._on_roads([moves[j] for j in keys])
-            if after < self.cfg.reloc_mend_keep_ratio * before:
+            if after < sp.mend_keep_ratio * before:
                 log.info("t=%.1f s: the map's correction would take the %d frames its search matched off the roads "
                          "(%.0f%% on them, %.0f%% as they are): left as they are", track.t[k1], len(moves),
                          100 * after, 100 * before)
@@ -134,7 +136,7 @@ class MapAnchors:
 
 class FixRegistration:
     """GPS's last fixes registered on the roads once GPS falls silent, and a decisive shift taken as a map
-    re-anchoring (``reloc_register_ratio``)."""
+    re-anchoring (``SearchParams.register_ratio``)."""
 
     def __init__(self, road: RoadMap, cfg: FusionConfig, track: Track, estimate: Estimate, initialiser: Initialiser,
                  association: MapAssociation, anchors: MapAnchors) -> None:
@@ -145,12 +147,13 @@ class FixRegistration:
         self.registered_fix_t = math.nan  # the last fix whose window the registration placed the estimate on
 
     def due(self, k: int) -> bool:
-        """Are GPS's fixes to be registered on the roads now: ``reloc_register_after_s`` after the last one (once per
-        last fix), wherever the estimate is (a window biased along its streets, or onto parallel ones, leaves it on
+        """Are GPS's fixes to be registered on the roads now: ``SearchParams.register_after_s`` after the last one (once
+        per last fix), wherever the estimate is (a window biased along its streets, or onto parallel ones, leaves it on
         roads too)?"""
-        cfg, fixes = self.cfg, self._initialiser.fixes
-        if cfg.reloc_register_ratio <= 0 or not fixes or fixes[-1][0] == self._checked_t \
-                or self.track.t[k] - fixes[-1][0] < cfg.reloc_register_after_s:
+        sp = relocalise.SEARCH_PARAMS
+        fixes = self._initialiser.fixes
+        if sp.register_ratio <= 0 or not fixes or fixes[-1][0] == self._checked_t \
+                or self.track.t[k] - fixes[-1][0] < sp.register_after_s:
             return False
         self._checked_t = fixes[-1][0]
         return True
@@ -170,26 +173,26 @@ class FixRegistration:
 
     def register(self, k: int, pred: gtsam.Pose3) -> bool:
         """GPS has fallen silent: its fixes of the last ``RELOC_REGISTER_M`` registered on the roads
-        (:func:`~mapfusion.register.register_on_roads`, ``reloc_register_ratio``). When the shift is decisive, the
-        odometry of the last ``reloc_register_place_m`` of fixes is placed on them, shifted, by a rigid fit (as a GPS
-        re-localisation places it; not the estimate moved: after a biased window its heading may be off too), the
-        smoother re-anchored there (a map re-anchoring), and True; otherwise False."""
-        cfg = self.cfg
+        (:func:`~mapfusion.register.register_on_roads`, ``SearchParams.register_ratio``). When the shift is decisive,
+        the odometry of the last ``SearchParams.register_place_m`` of fixes is placed on them, shifted, by a rigid fit
+        (as a GPS re-localisation places it; not the estimate moved: after a biased window its heading may be off too),
+        the smoother re-anchored there (a map re-anchoring), and True; otherwise False."""
+        sp = relocalise.SEARCH_PARAMS
         fixes, length_m = self._window()
-        sep = cfg.reloc_register_separation_m
+        sep = sp.register_separation_m
         reg = register_on_roads(self.road, np.array([f[1:] for f in fixes]).reshape(-1, 2), RELOC_RADIUS_M,
                                 separation_m=sep)
-        if reg is None or not reg.decisive(cfg.reloc_register_ratio, cfg.reloc_register_rms_m, sep):
+        if reg is None or not reg.decisive(sp.register_ratio, sp.register_rms_m, sep):
             if reg is not None:
                 log.info("t=%.1f s: the last fixes registered on the roads %.0f m away, RMS %.1f m, runner-up %.1f m: "
                          "not taken", self.track.t[k], reg.shift_m, reg.rms_m, reg.runner_up_rms_m)
             return False
         _, lx, ly = fixes[-1]
-        far = [i for i, (_, x, y) in enumerate(fixes) if math.hypot(x - lx, y - ly) >= cfg.reloc_register_place_m]
+        far = [i for i, (_, x, y) in enumerate(fixes) if math.hypot(x - lx, y - ly) >= sp.register_place_m]
         placed = self._fixes_on_frames([(t, x + reg.dx_m, y + reg.dy_m) for t, x, y in fixes[far[-1]:]], k) \
             if far else []
         if len(placed) < 2 or math.hypot(placed[0][0] - placed[-1][0], placed[0][1] - placed[-1][1]) \
-                < cfg.reloc_register_place_m:  # (too short a stretch has frames to be placed on: the heading is not)
+                < sp.register_place_m:  # (too short a stretch has frames to be placed on: the heading is not)
             return False
         log.info("t=%.1f s: the last %d fixes fit the roads %.0f m away (RMS %.1f m, runner-up %.1f m)",
                  self.track.t[k], reg.points, reg.shift_m, reg.rms_m, reg.runner_up_rms_m)

@@ -207,6 +207,132 @@ class ParticleParams:
 SEARCH_PARTICLES = ParticleParams()
 
 
+@dataclass(frozen=True)
+class SearchParams:
+    """The map search's own settings (with ``map_relocalisation``, and a cold start): fixed values of the engine,
+    each chosen by the measurement its comment names, not settings of :class:`~mapfusion.config.FusionConfig`.
+    The engine's parts read :data:`SEARCH_PARAMS` when they decide."""
+
+    #: A re-localisation within this distance of the current estimate only confirms it (no re-anchoring); farther,
+    #: the estimate is re-anchored on it (the search's answer is a cluster of a few metres' spread, placed by the
+    #: path's turns). Unit: m. Source: issue 17: never move an estimate that was not lost; 5 m against 15 m:
+    #: kidnapped seeds 1-10 within 500 m 36 against 34 of 40, seeds 11-20 after-error 7.27 against 7.43 m, none
+    #: wrong.
+    confirm_m: float = 5.0
+
+    #: With map_relocalisation: this long after the last GPS fix a search around the estimate checks where GPS left
+    #: it; while fixes come more often, GPS places the estimate and no search runs (0: searches regardless of GPS).
+    #: Unit: s. Source: issue 17: a biased fix window leaves the estimate off.
+    after_gps_s: float = 10.0
+
+    #: With map_relocalisation: the search begun when GPS falls silent (after_gps_s; only where GPS left the
+    #: estimate off the roads, gps_fit_min) starts this much driving back, around the estimate there, and is fed
+    #: the odometry since at once (from GPS's first fix at the earliest, never across an odometry gap): a fix
+    #: window that shared one bias is judged on the path driven under it, not only on the path after it (0: the
+    #: search starts at the silence). Unit: m. Source: issue 17: with gps_fit_min, kidnapped seeds 1-30, 0 / 250 /
+    #: 500 m: within 500 m 77 / 84 / 85 of 120, runs re-anchored wrong 10 / 9 / 9, ATE 51.9 / 52.6 / 53.1 m
+    #: (without the fit test 250 m moved a good estimate 237 m on a drive whose VO scale changes by 20% after GPS).
+    gps_replay_m: float = 500.0
+
+    #: With map_relocalisation: when GPS falls silent (after_gps_s), the second opinion's search begins only if
+    #: less than this share of the estimate's last gps_fit_m of driving lay on a road (within its width +
+    #: gps_fit_margin_m of the centre line, heading within prior_max_angle_deg): a path GPS placed on the roads is
+    #: trusted, one it placed off them is searched for (0: always search). Source: issue 17: the last 300 m before
+    #: the silence on 36 runs of the 60-run sets (GPS unbiased) 0.84-1.00 on a road, on 20 kidnapped runs with
+    #: biased fixes 0.00-0.41 and one 0.67.
+    gps_fit_min: float = 0.75
+
+    #: Driving over which gps_fit_min measures the estimate's path. Unit: m. Source: issue 17: as reloc_radius_m.
+    gps_fit_m: float = 300.0
+
+    #: How far beyond a road's width (lanes × lane_width_m) from its centre line the estimate still lies on it, for
+    #: gps_fit_min. Unit: m. Source: issue 17: a tracked estimate strays a lane from OSM's centre line.
+    gps_fit_margin_m: float = 3.0
+
+    #: With map_relocalisation: when GPS falls quiet (register_after_s) where it left the estimate off the roads
+    #: (gps_fit_min, or lost beside GPS; anywhere with reloc_register_on_roads), its fixes of the last
+    #: reloc_register_m are first registered on the roads (mapfusion.register: the shift within reloc_radius_m that
+    #: puts them nearest the way-points); the estimate is moved by that shift, without a search, when the best
+    #: shift farther than register_separation_m from it fits this many times worse (RMS), the shift itself fits
+    #: within register_rms_m and it is longer than register_separation_m (0: off; a search as before). Source:
+    #: issue 17: the fix windows of the kidnapped seeds 1-10 (offline, mapfusion.register): the 19 of 20 biased
+    #: windows found within 3.4 m of their bias had ratios 1.35-3.38, the one found 246 m off 1.04.
+    register_ratio: float = 1.25
+
+    #: The fixes are registered (register_ratio) this long after the last one, once per last fix: soon, for the
+    #: odometry carries the estimate from the last fix to the re-anchoring (a VO's heading wanders a few degrees in
+    #: 10 s: 26 m off at 25 m/s when measured). Unit: s. Source: issue 17: kidnapped GPS bias Kotka s7.
+    register_after_s: float = 2.0
+
+    #: A decisive registration places the odometry on the last fixes, shifted, by a rigid fit (as a GPS re-
+    #: localisation does): those back from the last one to the first that lies this far from it in a straight line
+    #: (a longer stretch bends with the VO's heading wander; a shorter one, or a standstill, leaves the heading
+    #: undetermined). Unit: m. Source: issue 17: kidnapped GPS bias Kotka s7 (25 m/s), 2 s after the last fix 7.1 m
+    #: off with 10 s of fixes, 10.7 m with 60 s; Helsinki s9, 10 s of fixes at a standstill turned the estimate
+    #: 138°.
+    register_place_m: float = 150.0
+
+    #: Largest RMS distance (each capped at 10 m) of the shifted fixes to the roads' way-points for the
+    #: registration to act. Unit: m. Source: issue 17: 2.1-3.0 m on the kidnapped seeds 1-10's windows (GPS σ 2 m,
+    #: vehicles 1.6 m right of the centre line).
+    register_rms_m: float = 4.0
+
+    #: How far another shift must lie from the best to count as its runner-up (register_ratio): nearer shifts are
+    #: the same place. Unit: m. Source: issue 17: a few lane widths, under a block's length.
+    register_separation_m: float = 30.0
+
+    #: With reloc_mend_back: the searched path is not moved when the moved path's share of frames on a road (every
+    #: fifth frame matched within half its road's width plus a lane, heading within prior_max_angle_deg) would fall
+    #: below this fraction of its share as it is: an estimate the map's priors kept on its roads is not swung off
+    #: them about its end by the answer's heading (0: always moved, as before). Source: issue 17: kidnapped VO jump
+    #: Kotka s11, a re-anchoring turned 1,353 m of path from 68% on the roads to 13% and its smoothed RMSE 18.7 ->
+    #: 104.5 m; good mends measured 35-64% against 57-83% (refused at ratio 1, docs/method.md).
+    mend_keep_ratio: float = 0.5
+
+    #: A search begun when the estimate is lost within this much driving after a map re-anchoring also covers the
+    #: region the re-anchoring's search ran in, grown by the distance since: the re-anchoring may have been wrong
+    #: (0: the lost region only). Unit: m. Source: issue 17: kidnapped seeds 1-10 / held-out 11-20, 0 / 1000 / 2000
+    #: m: ATE 60.4 / 58.7 / 58.7 and 82.6 / 80.5 / 80.4 m.
+    doubt_m: float = 1000.0
+
+    #: A search that re-anchored the estimate goes on over this much more driving, its posterior kept whole (its
+    #: particles may now turn back, as the road fixes' do): should its mass gather at another place (a look-alike
+    #: path that the road since has ruled out) more than watch_apart_m from the estimate, it re-anchors there (0: a
+    #: search ends when it converges). Unit: m. Source: issue 17: a wrong convergence stayed until the next lost
+    #: event; kidnapped seeds 1-10 / 11-20, 0 / 500 m: ATE 53.2 / 49.3 and 56.2 / 55.9 m, wrong for 1,386 / 1,381
+    #: and 1,603 / 1,603 m at most, 4 runs better, none worse.
+    watch_m: float = 500.0
+
+    #: How far from the estimate the watched posterior's answer must be to re-anchor again (nearer: the same place,
+    #: the tracking's own along-road error). Unit: m. Source: issue 17: twice reloc_converge_radius_m.
+    watch_apart_m: float = 50.0
+
+    #: No map re-anchoring while the search's posterior still holds at least this share of its mass within 2 ×
+    #: reloc_converge_radius_m of the estimate: it has not ruled the estimate's place out, only preferred another
+    #: (a look-alike path) (0: no such test). Source: issue 17: as road_fix_rival_mass; kidnapped seeds 1-10 /
+    #: held-out 11-20, 0 / 0.02 / 0.05 / 0.1: ATE 53.8 / 53.2 / 53.2 / 53.2 and 70.9 / 56.2 / 56.2 / 57.7 m, runs
+    #: re-anchored wrong 4 / 3 / 3 / 3 and 8 / 5 / 5 / 6.
+    rival_mass: float = 0.05
+
+    #: Speed assumed through such a gap: the search region's radius is reloc_gap_margin_m + this × the gap, and the
+    #: opened GPS gate's σ at least this × the gap. Unit: m/s. Source: issue 17: city speeds.
+    gap_speed_mps: float = 15.0
+
+    #: The search region after an odometry gap also reaches the step carried over it (outage_step) plus this many
+    #: of that step's σ (reloc_sigma_m + outage_step_fraction × its length): a vehicle may speed up in the gap, and
+    #: the carried step assumes the speeds at its ends; 0: the carried step's length alone. Source: issue 17: rain-
+    #: tunnel Andorra vo s2 drove 27 m/s in a 106 s tunnel gap carried at 19-25 m/s; its search's 2,612 m region
+    #: ended 300 m short of the vehicle and converged on a look-alike 860 m off.
+    gap_reach_sigmas: float = 1.0
+
+    #: Largest search region. Unit: m. Source: issue 17: 2 km in a city at 10 Hz on one core.
+    max_radius_m: float = 2000.0
+
+
+#: The engine's map search (read as ``relocalise.SEARCH_PARAMS`` where it decides).
+SEARCH_PARAMS = SearchParams()
+
+
 class RoadParticles:
     """The particle filter over positions on the road graph (see the module docstring)."""
 
@@ -742,7 +868,7 @@ class Search:
         self.road, self.cfg = road, cfg
         self.active: Relocaliser | None = None
         self.searches = 0
-        self.watching: Relocaliser | None = None  # a search that re-anchored, still fed (reloc_watch_m)
+        self.watching: Relocaliser | None = None  # a search that re-anchored, still fed (SearchParams.watch_m)
         self._watch_until_m = 0.0
 
     def begin(self, region: Region, scale_range: tuple[float, float] = (1.0, 1.0), frame: int | None = None,
@@ -769,19 +895,19 @@ class Search:
         self.active = self.watching = None
 
     def watch(self, search: Relocaliser) -> None:
-        """Keep feeding ``search``, which has just re-anchored the estimate, over ``reloc_watch_m`` more driving
+        """Keep feeding ``search``, which has just re-anchored the estimate, over ``SearchParams.watch_m`` more driving
         (nothing when that is 0): its posterior is kept whole, so that a look-alike path it converged on can
         still lose its mass to the right place (see :meth:`watched`)."""
-        if self.cfg.reloc_watch_m > 0:
+        if SEARCH_PARAMS.watch_m > 0:
             self.watching = search
-            self._watch_until_m = search.particles.driven_m + self.cfg.reloc_watch_m
+            self._watch_until_m = search.particles.driven_m + SEARCH_PARAMS.watch_m
             # a search's particles never turn back (over its few hundred metres the vehicle rarely does); followed
             # for longer, a vehicle that turns back kills the right cluster: watched, they may, as the road fixes' do
             search.particles.allow_uturns(ROAD_FIX_UTURN_PROBABILITY)
 
     def watched(self, x_m: float, y_m: float, yaw_rad: float, frame: int | None = None) -> Located | None:
         """One odometry pose (as :meth:`feed`) for the watched search; its converged answer, or None. Watching
-        ends after ``reloc_watch_m``."""
+        ends after ``SearchParams.watch_m``."""
         w = self.watching
         if w is None:
             return None
@@ -792,18 +918,17 @@ class Search:
 
     def widen_if_stuck(self, x_m: float, y_m: float, frame: int | None = None) -> None:
         """A search that has not converged over ``RELOC_GIVE_UP_M`` starts again around (x, y) with twice
-        its radius (up to ``reloc_max_radius_m``): the vehicle may have left the region."""
+        its radius (up to ``SearchParams.max_radius_m``): the vehicle may have left the region."""
         a = self.active
         if a is not None and a.particles.driven_m >= RELOC_GIVE_UP_M:
-            self.begin(Region(x_m, y_m, min(2.0 * a.region.radius_m, self.cfg.reloc_max_radius_m)), a.scale_range,
+            self.begin(Region(x_m, y_m, min(2.0 * a.region.radius_m, SEARCH_PARAMS.max_radius_m)), a.scale_range,
                        frame)
 
     def lost_region(self, x_m: float, y_m: float, unexplained_m: float) -> Region:
         """Where to look when lost: around the estimate where a road last explained it (``x_m``, ``y_m``), the
         radius grown with the distance driven since (the vehicle is at most that far from there)."""
-        cfg = self.cfg
         return Region(x_m, y_m, min(RELOC_RADIUS_M + RELOC_RADIUS_PER_M * unexplained_m,
-                                    cfg.reloc_max_radius_m))
+                                    SEARCH_PARAMS.max_radius_m))
 
     def feed(self, x_m: float, y_m: float, yaw_rad: float, frame: int | None = None) -> Located | None:
         """One odometry pose (metres, the odometry's frame; ``frame``: the caller's number for it); the answer

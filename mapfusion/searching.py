@@ -27,6 +27,7 @@ from .track import Track, planar_of
 from .factors import OUTAGE_ROT_SIGMA_DEG
 from .relocalise import RELOC_RADIUS_M
 from .relocalise import SEARCH_PARTICLES
+from . import relocalise
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +57,7 @@ class MapSearch:
         self._anchors, self._registration, self._carry = anchors, registration, carry
         self.search = Search(road, cfg)
         self._checked_fix_t = math.nan  # the last fix whose silence started a search
-        self._watch_last: Located | None = None  # the watched search's last answer (reloc_watch_m)
+        self._watch_last: Located | None = None  # the watched search's last answer (SearchParams.watch_m)
         self._beside_gps = False  # the running search began while GPS came (it has not acted yet)
 
     @property
@@ -83,6 +84,7 @@ class MapSearch:
     def when_lost(self, k: int, pred: gtsam.Pose3) -> None:
         """From the moment the estimate is lost, a search on the road network; once it converges away from
         the estimate, the smoother is re-anchored there (issue 17; near the estimate it only confirms it)."""
+        sp = relocalise.SEARCH_PARAMS
         if not self.cfg.use_map:  # (the baseline: no map, so no search on it)
             return
         assoc, search = self._association, self.search
@@ -92,7 +94,7 @@ class MapSearch:
             search.end()
             self._beside_gps = False
             return
-        if fixes and self.track.t[k] - fixes[-1][0] < self.cfg.reloc_after_gps_s:
+        if fixes and self.track.t[k] - fixes[-1][0] < sp.after_gps_s:
             search.stop_watching()  # (GPS is back: it places the estimate)
             self._search_beside_gps(k, pred)  # GPS is here: it places the estimate, not a search of the map
             return
@@ -104,10 +106,10 @@ class MapSearch:
             # the vehicle went at most as far as the speed assumed through the gap takes it, or as its last velocity
             # did (the engine's own guess across the gap; the odometry's own step may have jumped: not that one)
             prev = self.track.online[k - 1] or pred
-            reach = gap_s * self.cfg.reloc_gap_speed_mps
+            reach = gap_s * sp.gap_speed_mps
             if self.cfg.outage_step is not OutageStep.odometry:  # (the carried step, and its σ: the speed in the gap)
                 carried = math.hypot(pred.x() - prev.x(), pred.y() - prev.y())
-                reach = max(reach, carried + self.cfg.reloc_gap_reach_sigmas * self._carry.carried_sigma_m(carried))
+                reach = max(reach, carried + sp.gap_reach_sigmas * self._carry.carried_sigma_m(carried))
             region = Region(prev.x(), prev.y(), RELOC_GAP_MARGIN_M + reach)
             search.begin(self._still_open(region, reach), frame=k, guess=self._gap_guess(prev, pred))
             return
@@ -127,7 +129,7 @@ class MapSearch:
         loc = search.feed(*self._search_pose(k, active), k)
         if loc is None:
             return
-        if math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
+        if math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= sp.confirm_m:
             log.info("t=%.1f s: the search's answer, %.0f m from the estimate, confirms it", self.track.t[k],
                      math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
             return
@@ -153,33 +155,36 @@ class MapSearch:
         search still runs unconverged: the smallest disc that also holds the running
         search's region grown by the distance driven since it began and by the gap's ``reach_m`` (the vehicle may be
         anywhere that search had not ruled out, the estimate it left being no better than its guess), at most
-        ``reloc_max_radius_m``."""
+        ``SearchParams.max_radius_m``."""
+        sp = relocalise.SEARCH_PARAMS
         running = self.search.active
         if running is None:
             return region
         old = running.region
         both = enclosing_disc(region, Region(old.x_m, old.y_m, old.radius_m + running.particles.driven_m + reach_m))
         log.info("an odometry gap while a search runs: the new search covers the running one's region too, %.0f m "
-                 "around (%.0f, %.0f)", min(both.radius_m, self.cfg.reloc_max_radius_m), both.x_m, both.y_m)
-        return Region(both.x_m, both.y_m, min(both.radius_m, self.cfg.reloc_max_radius_m))
+                 "around (%.0f, %.0f)", min(both.radius_m, sp.max_radius_m), both.x_m, both.y_m)
+        return Region(both.x_m, both.y_m, min(both.radius_m, sp.max_radius_m))
 
     def _gps_left_it_off_the_roads(self, k: int) -> bool:
         """GPS has fallen silent: does where it left the estimate need a second opinion? Only when less than
-        ``reloc_gps_fit_min`` of the estimate's last ``reloc_gps_fit_m`` lay on a road: fixes that share one bias
-        place the path off the roads most of the way, good ones on them (a search around a good estimate can only
-        confirm it, or, converging on a look-alike path, move it away)."""
+        ``SearchParams.gps_fit_min`` of the estimate's last ``SearchParams.gps_fit_m`` lay on a road: fixes that share
+        one bias place the path off the roads most of the way, good ones on them (a search around a good estimate can
+        only confirm it, or, converging on a look-alike path, move it away)."""
+        sp = relocalise.SEARCH_PARAMS
         assoc = self._association
         if not assoc.kept_to_roads():
             return True
         log.info("t=%.1f s: GPS silent, %.0f%% of the estimate's last %.0f m on a road: no search", self.track.t[k],
-                 100 * (assoc.road_fit() or 0.0), self.cfg.reloc_gps_fit_m)
+                 100 * (assoc.road_fit() or 0.0), sp.gps_fit_m)
         return False
 
     def _search_since_gps(self, k: int, pred: gtsam.Pose3) -> None:
-        """GPS has fallen silent: a search around where it left the estimate, begun ``reloc_gps_replay_m`` of
+        """GPS has fallen silent: a search around where it left the estimate, begun ``SearchParams.gps_replay_m`` of
         driving back (around the estimate there) and fed the frames since at once, so that the path driven under
         the fixes already counts (all the fixes of a window may share one bias that only the roads can show)."""
-        k0 = self._anchors.replay_start(k, self.cfg.reloc_gps_replay_m)
+        sp = relocalise.SEARCH_PARAMS
+        k0 = self._anchors.replay_start(k, sp.gps_replay_m)
         centre = self.track.online[k0] if k0 < k else pred  # (every frame it steps back over has an estimate)
         assert centre is not None
         search = self.search
@@ -198,13 +203,14 @@ class MapSearch:
         return x * scale, y * scale, yaw
 
     def _watch_reanchoring(self, k: int, pred: gtsam.Pose3) -> None:
-        """The search that re-anchored the estimate goes on (``reloc_watch_m``). If its posterior's mass moves to
-        another place (its answer jumps, beyond where the vehicle drove, by more than ``reloc_watch_apart_m``)
+        """The search that re-anchored the estimate goes on (``SearchParams.watch_m``). If its posterior's mass moves to
+        another place (its answer jumps, beyond where the vehicle drove, by more than ``SearchParams.watch_apart_m``)
         farther than that from the estimate, the path since has ruled the first answer out, and the estimate is
-        re-anchored again, there — at the first step at which the posterior no longer holds ``reloc_rival_mass`` at
-        the estimate (until then the jump is weighed again at each step). If instead its one cluster drifts away
-        from the estimate (a manoeuvre its particles could not follow), the watched posterior no longer means
-        anything: watching ends."""
+        re-anchored again, there — at the first step at which the posterior no longer holds ``SearchParams.rival_mass``
+        at the estimate (until then the jump is weighed again at each step). If instead its one cluster drifts away from
+        the estimate (a manoeuvre its particles could not follow), the watched posterior no longer means anything:
+        watching ends."""
+        sp = relocalise.SEARCH_PARAMS
         search = self.search
         watched = search.watching
         assert watched is not None
@@ -212,7 +218,7 @@ class MapSearch:
         if loc is None:
             return
         last = self._watch_last
-        apart = self.cfg.reloc_watch_apart_m
+        apart = sp.watch_apart_m
         off = math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y())
         if off <= apart:
             self._watch_last = loc
@@ -234,16 +240,16 @@ class MapSearch:
 
     def _rival_at_estimate(self, k: int, pred: gtsam.Pose3, loc: Located, search: Relocaliser) -> bool:
         """True (and logged) when ``search``, whose answer ``loc`` is away from the estimate, still holds at least
-        ``reloc_rival_mass`` of its posterior within 2 × ``ParticleParams.converge_radius_m`` of the estimate (outside
-        the answer's own disc: an answer near the estimate is not its own rival): it has not ruled the estimate's place
-        out, only preferred another, and a good estimate is not moved on that."""
-        cfg = self.cfg
-        if cfg.reloc_rival_mass <= 0:
+        ``SearchParams.rival_mass`` of its posterior within 2 × ``ParticleParams.converge_radius_m`` of the estimate
+        (outside the answer's own disc: an answer near the estimate is not its own rival): it has not ruled the
+        estimate's place out, only preferred another, and a good estimate is not moved on that."""
+        sp = relocalise.SEARCH_PARAMS
+        if sp.rival_mass <= 0:
             return False
         r = SEARCH_PARTICLES.converge_radius_m
         mass = search.particles.mass_within(pred.x(), pred.y(), 2.0 * r,
                                             (loc.x_m, loc.y_m, r))
-        if mass < cfg.reloc_rival_mass:
+        if mass < sp.rival_mass:
             return False
         log.info("t=%.1f s: the search prefers a place %.0f m away but still holds %.0f%% of its posterior at the "
                  "estimate: no re-anchoring", self.track.t[k], math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()),
@@ -252,7 +258,7 @@ class MapSearch:
 
     def _map_reanchor(self, k: int, pred: gtsam.Pose3, loc: Located, active: Relocaliser) -> None:
         """Re-anchor the smoother at frame k on a search's answer (counted, logged, the searched path mended), and
-        watch that search on from there (``reloc_watch_m``)."""
+        watch that search on from there (``SearchParams.watch_m``)."""
         pose = gtsam.Pose3(gtsam.Rot3.Yaw(loc.yaw_rad), gtsam.Point3(loc.x_m, loc.y_m, pred.z()))
         log.info("t=%.1f s: lost, found again on the road network %.0f m from the estimate", self.track.t[k],
                  math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()))
@@ -265,6 +271,7 @@ class MapSearch:
         """While GPS comes: no search unless the estimate is lost; then one runs, fed but
         never acted on, so that when GPS falls silent its particles already know where the odometry's path fits
         the roads (a fix window sharing one bias keeps the estimate off the roads long before GPS ends)."""
+        sp = relocalise.SEARCH_PARAMS
         assoc, search = self._association, self.search
         if self._estimate.alignment is None or not (assoc.lost or self._beside_gps):
             search.stop()
@@ -279,17 +286,18 @@ class MapSearch:
         if search.active.answer is None:  # (a converged search follows the vehicle however far it drives)
             search.widen_if_stuck(pred.x(), pred.y(), k)
         loc = search.active.add(*self._search_pose(k, search.active), k)  # (not feed: a converged search goes on)
-        if loc is not None and math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= self.cfg.reloc_confirm_m:
+        if loc is not None and math.hypot(loc.x_m - pred.x(), loc.y_m - pred.y()) <= sp.confirm_m:
             search.stop()  # the map confirms GPS: a search that found the estimate ends
             self._beside_gps = False
 
     def _doubting(self, k: int, region: Region) -> Region:
-        """The region of a search begun when the estimate is lost within ``reloc_doubt_m`` of driving after a map
+        """The region of a search begun when the estimate is lost within ``SearchParams.doubt_m`` of driving after a map
         re-anchoring: that re-anchoring may have been the wrong turn, so the region also covers the one the
         re-anchoring's search ran in, grown by the distance driven since (the smallest disc holding both, at most
-        ``reloc_max_radius_m``)."""
-        cfg, a = self.cfg, self._estimate.alignment
-        if self._anchors.last is None or cfg.reloc_doubt_m <= 0 or a is None:
+        ``SearchParams.max_radius_m``)."""
+        sp = relocalise.SEARCH_PARAMS
+        a = self._estimate.alignment
+        if self._anchors.last is None or sp.doubt_m <= 0 or a is None:
             return region
         k0, old = self._anchors.last
         track = self.track
@@ -297,20 +305,21 @@ class MapSearch:
             return region
         pts = np.array([planar_of(track.raw[j])[:2] for j in range(k0, k + 1)])
         driven = float(cumulative_length(pts)[-1]) * a.scale
-        if driven > cfg.reloc_doubt_m:
+        if driven > sp.doubt_m:
             return region
         grown = Region(old.x_m, old.y_m, old.radius_m + driven)
         both = enclosing_disc(region, grown)
-        return Region(both.x_m, both.y_m, min(both.radius_m, cfg.reloc_max_radius_m))
+        return Region(both.x_m, both.y_m, min(both.radius_m, sp.max_radius_m))
 
     def _gps_went_silent(self, k: int) -> bool:
-        """True once per GPS outage: the last fix is ``reloc_after_gps_s`` old (the estimate is where GPS left
+        """True once per GPS outage: the last fix is ``SearchParams.after_gps_s`` old (the estimate is where GPS left
         it — a biased fix window leaves it in the wrong place, and nothing but the map can tell)."""
+        sp = relocalise.SEARCH_PARAMS
         fixes = self._initialiser.fixes
-        if not fixes or self.cfg.reloc_after_gps_s <= 0:
+        if not fixes or sp.after_gps_s <= 0:
             return False
         last = fixes[-1][0]
-        if last == self._checked_fix_t or self.track.t[k] - last < self.cfg.reloc_after_gps_s:
+        if last == self._checked_fix_t or self.track.t[k] - last < sp.after_gps_s:
             return False
         self._checked_fix_t = last
         return True

@@ -6,10 +6,11 @@ the tests reason about are defined once.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
+import contextlib
+import dataclasses
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -220,3 +221,15 @@ def odometry_step(ox, oy, oyaw, k: int) -> np.ndarray:
     rel[:2, :2] = [[math.cos(dyaw), -math.sin(dyaw)], [math.sin(dyaw), math.cos(dyaw)]]
     rel[0, 3], rel[1, 3] = c0 * dx + s0 * dy, -s0 * dx + c0 * dy
     return rel
+
+
+@contextlib.contextmanager
+def search_params(**changes):
+    """The engine's map search with these :class:`~mapfusion.relocalise.SearchParams` changed (its parts read
+    ``mapfusion.relocalise.SEARCH_PARAMS`` when they decide) for the duration of the block."""
+    from unittest import mock
+
+    from mapfusion import relocalise
+
+    with mock.patch.object(relocalise, "SEARCH_PARAMS", dataclasses.replace(relocalise.SEARCH_PARAMS, **changes)):
+        yield

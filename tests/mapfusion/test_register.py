@@ -14,11 +14,12 @@ from scipy.spatial import cKDTree
 
 from mapfusion import FusionConfig, RoadMap
 from mapfusion.register import register_on_roads, thin_path
+from mapfusion.relocalise import SEARCH_PARAMS
 from tests.helpers import MAPS, drifting_odometry, graph_route, six_lane_ring, straight_road, write_osm
 from tests.mapfusion.test_relocalise import _feed
 
-#: what the engine asks of a registration before it acts (FusionConfig's defaults)
-CFG = FusionConfig()
+#: what the engine asks of a registration before it acts (the search's defaults)
+CFG = SEARCH_PARAMS
 
 
 @pytest.fixture(scope="module")
@@ -26,8 +27,12 @@ def road():
     return RoadMap.from_osm(MAPS / "helsinki.osm.pbf")
 
 
+#: the search begun at GPS's silence examines every window and replays nothing of the path under GPS
+ANY_FIT = dict(gps_fit_min=0.0, gps_replay_m=0.0)
+
+
 def _confident(reg) -> bool:
-    return reg.decisive(CFG.reloc_register_ratio, CFG.reloc_register_rms_m, CFG.reloc_register_separation_m)
+    return reg.decisive(CFG.register_ratio, CFG.register_rms_m, CFG.register_separation_m)
 
 
 def _shifted_drive(road, seed: int, bias_m: float, angle: float, length_m: float):
@@ -76,7 +81,7 @@ def test_a_decisive_answer_is_never_a_look_alike_beyond_the_separation(road):
         pts, dx, dy = _shifted_drive(road, *case)
         reg = register_on_roads(road, pts, 300.0)
         if _confident(reg):
-            assert math.hypot(reg.dx_m + dx, reg.dy_m + dy) <= CFG.reloc_register_separation_m + 3.0, (case, reg)
+            assert math.hypot(reg.dx_m + dx, reg.dy_m + dy) <= CFG.register_separation_m + 3.0, (case, reg)
 
 
 def test_most_drives_with_turns_are_found(road):
@@ -126,20 +131,20 @@ def test_thinning_keeps_points_at_least_that_far_apart_along_the_path():
 @pytest.mark.slow
 def test_the_engine_moves_a_biased_window_onto_the_roads_when_gps_falls_quiet(road):
     """70 s of fixes all 150 m off, then none (routes 6-9 of the search's tests): with the registration (the
-    default) the first map re-anchoring comes reloc_register_after_s after the last fix (or at the first frame after
+    default) the first map re-anchoring comes SearchParams.register_after_s after the last fix (or at the first frame after
     the initialisation, which waits for the fixes to stall: 74.2 s on routes 8 and 9), before GPS's silence would
     begin a search, and moves the estimate onto the truth; with it off, a search re-anchors 99-110 s into the drive
-    (measured). reloc_gps_fit_min is off, as in the search's test, so that the fixes are examined on every route."""
+    (measured). SearchParams.gps_fit_min is off, as in the search's test, so that the fixes are examined on every route."""
     last_fix_s = 69.0
     at_silence = 0
     for seed in (6, 7, 8, 9):
         x, y, yaw, _ = graph_route(road, seed, 2400.0)
         ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
-        cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_gps_fit_min=0.0, reloc_gps_replay_m=0.0)
-        eng, err = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0))
+        cfg = FusionConfig(map_relocalisation=True, road_fixes=False)
+        eng, err = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0), search=ANY_FIT)
         assert eng.relocalised_at and err < 15.0, (seed, err)
         t, searched = eng.relocalised_at[0]
-        at_silence += last_fix_s + CFG.reloc_register_after_s - 0.5 <= t < last_fix_s + CFG.reloc_after_gps_s \
+        at_silence += last_fix_s + CFG.register_after_s - 0.5 <= t < last_fix_s + CFG.after_gps_s \
             and searched == 0.0
     assert at_silence >= 3
 
@@ -151,14 +156,14 @@ def test_the_engine_leaves_a_good_window_where_it_is(road):
     for seed in (6, 7):
         x, y, yaw, _ = graph_route(road, seed, 2400.0)
         ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
-        cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_gps_fit_min=0.0, reloc_gps_replay_m=0.0)
-        eng, err = _feed(road, cfg, x, y, ox, oy, oyaw, 700)
+        cfg = FusionConfig(map_relocalisation=True, road_fixes=False)
+        eng, err = _feed(road, cfg, x, y, ox, oy, oyaw, 700, search=ANY_FIT)
         assert not any(m == 0.0 for t, m in eng.relocalised_at), eng.relocalised_at  # (a search's has driven)
 
 
 def test_a_window_ending_in_a_standstill_places_the_heading_from_the_driving_before_it(road):
     """The biased window's last 20 s of fixes at a standstill: the odometry is placed on the fixes back to one
-    reloc_register_place_m from the last (the driving before the stop), so the heading is known and the estimate
+    SearchParams.register_place_m from the last (the driving before the stop), so the heading is known and the estimate
     follows the truth once the vehicle drives on (placed on the last 10 s alone, a standstill left the heading free:
     a kidnapped Helsinki run turned 138° and went 108 m off within 10 s when measured)."""
     seed = 6
@@ -170,8 +175,9 @@ def test_a_window_ending_in_a_standstill_places_the_heading_from_the_driving_bef
         return np.concatenate([a[:stop], np.repeat(a[stop], still), a[stop:]])
 
     x2, y2 = stopped(x), stopped(y)
-    cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_gps_fit_min=0.0, reloc_gps_replay_m=0.0)
-    eng, err = _feed(road, cfg, x2, y2, stopped(ox), stopped(oy), stopped(oyaw), 700, fix_offset=(106.0, 106.0))
+    cfg = FusionConfig(map_relocalisation=True, road_fixes=False)
+    eng, err = _feed(road, cfg, x2, y2, stopped(ox), stopped(oy), stopped(oyaw), 700, fix_offset=(106.0, 106.0),
+                     search=ANY_FIT)
     assert eng.relocalised_at and eng.relocalised_at[0][1] == 0.0, eng.relocalised_at  # (the registration's)
     t_s, online = eng.online_estimates()
     after = [math.hypot(p.x() - x2[k], p.y() - y2[k]) for k, p in enumerate(online)
@@ -185,14 +191,14 @@ def test_a_biased_window_on_parallel_streets_is_registered_at_the_silence(road):
     """Route 7's fixes, 150 m off diagonally, leave the estimate on parallel streets: it keeps to the roads, and
     a search would wait for the estimate to be called lost (its first re-anchoring at 153.8 s when the
     registration was only for estimates off the roads); the fixes are registered all the same, at the silence
-    (reloc_register_after_s after the last fix, searched 0), and the drive ends on the truth."""
+    (SearchParams.register_after_s after the last fix, searched 0), and the drive ends on the truth."""
     last_fix_s = 69.0
     x, y, yaw, _ = graph_route(road, 7, 2400.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, 7, heading_rad=0.3, noise_m=0.02)
-    cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_gps_replay_m=0.0)
-    eng, err = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0))
+    cfg = FusionConfig(map_relocalisation=True, road_fixes=False)
+    eng, err = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0), search=dict(gps_replay_m=0.0))
     assert eng.relocalised_at and err < 15.0, err
     firsts = eng.relocalised_at
     t, searched = firsts[0]
-    assert last_fix_s + CFG.reloc_register_after_s - 0.5 <= t < last_fix_s + CFG.reloc_after_gps_s, firsts
+    assert last_fix_s + CFG.register_after_s - 0.5 <= t < last_fix_s + CFG.after_gps_s, firsts
     assert searched == 0.0, firsts

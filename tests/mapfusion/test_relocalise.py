@@ -15,13 +15,14 @@ from hypothesis.extra import numpy as hnp
 
 from mapfusion import FusionConfig, RoadMap
 from mapfusion.config import OutageStep
-from mapfusion.relocalise import SEARCH_PARTICLES, Guess, Region, Relocaliser, RoadFollower, RoadParticles, Search, \
+from mapfusion.relocalise import SEARCH_PARAMS, SEARCH_PARTICLES, Guess, Region, Relocaliser, RoadFollower, RoadParticles, Search, \
     _edge_travel, _median, _weighted_mean_xy, guess_log_weights
 from mapfusion.roadmap import can_drive
-from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
+from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step, search_params
 
 CFG = FusionConfig()
 PARTICLES = SEARCH_PARTICLES
+SEARCH = SEARCH_PARAMS
 
 
 @pytest.fixture(scope="module")
@@ -226,7 +227,7 @@ def test_a_start_region_is_refused_after_the_first_frame_or_when_not_finite(road
 
 def test_a_lost_estimate_is_found_again_on_the_road_network(road):
     """GPS at the start puts the estimate 150 m off (a biased fix window, then no GPS): with
-    map_relocalisation the engine searches the roads and re-anchors on the truth (since reloc_gps_replay_m the
+    map_relocalisation the engine searches the roads and re-anchors on the truth (since SearchParams.gps_replay_m the
     search begun when GPS falls silent may find it before the estimate is called lost); without it
     (and without road fixes) the estimate stays off. The road fixes alone (the default) also bring it back:
     8.6 m from the truth at the end when measured."""
@@ -258,9 +259,16 @@ def test_a_lost_estimate_is_found_again_on_the_road_network(road):
     assert fixed.counters.road_fixes >= 1 and err_fixed < 15.0, err_fixed
 
 
-def _feed(road, cfg, x, y, ox, oy, oyaw, fixes_until_k: int, fix_offset=(0.0, 0.0), skip=range(0)):
+def _feed(road, cfg, x, y, ox, oy, oyaw, fixes_until_k: int, fix_offset=(0.0, 0.0), skip=range(0),
+          search: dict | None = None):
     """The engine over a drive: odometry every frame but those in ``skip`` (an outage), a fix every 10 frames
-    before ``fixes_until_k`` (moved by ``fix_offset``); returns the engine and its final error."""
+    before ``fixes_until_k`` (moved by ``fix_offset``), its search's ``SearchParams`` changed by ``search``;
+    returns the engine and its final error."""
+    with search_params(**(search or {})):
+        return _fed(road, cfg, x, y, ox, oy, oyaw, fixes_until_k, fix_offset, skip)
+
+
+def _fed(road, cfg, x, y, ox, oy, oyaw, fixes_until_k: int, fix_offset, skip):
     from mapfusion import MapFusion
 
     eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
@@ -323,7 +331,7 @@ def test_a_vo_that_resumes_in_the_wrong_place_after_an_outage_is_found_again(roa
 def test_a_search_after_a_long_fast_outage_covers_where_the_vehicle_went():
     """The synthetic tunnel road at 28 m/s, GPS for the first 15 s, then the VO blind for 25 s (700 m, the tunnel):
     the engine carries its last velocity along the road, so it resumes near the truth; the search begun there must
-    cover the truth, though the vehicle drove faster than reloc_gap_speed_mps assumes. With a radius from that speed
+    cover the truth, though the vehicle drove faster than SearchParams.gap_speed_mps assumes. With a radius from that speed
     alone (measured before the change), the 476 m region missed the truth by 198 m, and the search re-anchored a
     good estimate 1.1 km later on a place ~690 m off, where each drive ended."""
     from mapfusion import MapFusion
@@ -370,7 +378,7 @@ def _sped_up_in_the_gap(road, seed: int, gap: range, v_mps: float, v_gap_mps: fl
 def test_a_search_after_a_gap_covers_a_vehicle_that_sped_up_in_it():
     """The synthetic tunnel road at 20 m/s, GPS for the first 20 s, then the VO blind for 25 s in which the vehicle
     drives 26 m/s: the step carried over the gap (the speeds at both ends, 20 m/s) falls 150 m short, so a region
-    of the carried step's length alone (100 m + 500 m) misses the truth by ~50 m. reloc_gap_reach_sigmas = 1 adds
+    of the carried step's length alone (100 m + 500 m) misses the truth by ~50 m. SearchParams.gap_reach_sigmas = 1 adds
     the carried step's σ (ParticleParams.sigma_m + outage_step_fraction × 500 m). Rain-tunnel Andorra vo s2 (27 m/s in a
     106 s tunnel carried at 19-25 m/s) is where this was found: its search converged 860 m off."""
     from mapfusion import MapFusion
@@ -379,24 +387,24 @@ def test_a_search_after_a_gap_covers_a_vehicle_that_sped_up_in_it():
     lost, resumed = 220, 470
     x, y, ox, oy, oyaw = _sped_up_in_the_gap(road, 1, range(lost, resumed + 1), 20.0, 26.0)
     for sigmas, inside in ((0.0, False), (1.0, True)):
-        eng = MapFusion(road, FusionConfig(map_relocalisation=True, road_fixes=False, reloc_gap_reach_sigmas=sigmas),
-                        odometry_rate_hz=10.0)
-        last, region = None, None
-        for k in range(resumed + 1):
-            if k % 2 == 0 and k < 200:
-                lat, lon = road.projection.to_geo(x[k], y[k])
-                eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
-            if lost <= k < resumed:
-                continue
-            rel = odometry_step(ox, oy, oyaw, k) if last is None or last == k - 1 else \
-                np.linalg.inv(_abs(ox, oy, oyaw, last)) @ _abs(ox, oy, oyaw, k)
-            eng.add_odometry(0.1 * k, rel)
-            last = k
-        assert eng.initialised_at is not None and eng.initialised_at < 0.1 * lost
-        assert eng._map_search.search.active is not None
-        region = eng._map_search.search.active.region
-        off = math.hypot(x[resumed] - region.x_m, y[resumed] - region.y_m)
-        assert (off < region.radius_m - 25.0) is inside and (off > region.radius_m) is not inside, (sigmas, off, region)
+        with search_params(gap_reach_sigmas=sigmas):
+            eng = MapFusion(road, FusionConfig(map_relocalisation=True, road_fixes=False), odometry_rate_hz=10.0)
+            last, region = None, None
+            for k in range(resumed + 1):
+                if k % 2 == 0 and k < 200:
+                    lat, lon = road.projection.to_geo(x[k], y[k])
+                    eng.add_gps(0.1 * k, float(lat), float(lon), None, 2.0)
+                if lost <= k < resumed:
+                    continue
+                rel = odometry_step(ox, oy, oyaw, k) if last is None or last == k - 1 else \
+                    np.linalg.inv(_abs(ox, oy, oyaw, last)) @ _abs(ox, oy, oyaw, k)
+                eng.add_odometry(0.1 * k, rel)
+                last = k
+            assert eng.initialised_at is not None and eng.initialised_at < 0.1 * lost
+            assert eng._map_search.search.active is not None
+            region = eng._map_search.search.active.region
+            off = math.hypot(x[resumed] - region.x_m, y[resumed] - region.y_m)
+            assert (off < region.radius_m - 25.0) is inside and (off > region.radius_m) is not inside, (sigmas, off, region)
 
 
 def test_no_search_acts_while_gps_comes(road):
@@ -412,12 +420,13 @@ def test_no_search_acts_while_gps_comes(road):
 
 def _biased_window(road, seed: int, fixes_until_k: int):
     """A drive whose 70 s of fixes all lie 150 m off; the silence's search is begun at the silence (no replay of the
-    path under GPS, reloc_gps_replay_m 0) and the fixes are not registered on the roads first (reloc_register_ratio
+    path under GPS, SearchParams.gps_replay_m 0) and the fixes are not registered on the roads first (SearchParams.register_ratio
     0: test_register.py), so that what the tests using it see is the search beside GPS alone."""
     x, y, yaw, _ = graph_route(road, seed, 2400.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
-    cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_gps_replay_m=0.0, reloc_register_ratio=0.0)
-    return _feed(road, cfg, x, y, ox, oy, oyaw, fixes_until_k, fix_offset=(106.0, 106.0))
+    cfg = FusionConfig(map_relocalisation=True, road_fixes=False)
+    return _feed(road, cfg, x, y, ox, oy, oyaw, fixes_until_k, fix_offset=(106.0, 106.0),
+                 search=dict(gps_replay_m=0.0, register_ratio=0.0))
 
 
 @pytest.mark.slow
@@ -429,18 +438,18 @@ def test_a_search_beside_a_biased_gps_re_anchors_once_gps_falls_silent(road):
     for seed in (3, 4, 5):
         on, err_on = _biased_window(road, seed, 700)
         assert on.relocalised_at and err_on < 15.0, (seed, on.relocalised_at, err_on)
-        assert 69.0 + CFG.reloc_after_gps_s <= on.relocalised_at[0][0], seed  # never while fixes come
+        assert 69.0 + SEARCH.after_gps_s <= on.relocalised_at[0][0], seed  # never while fixes come
 
 
 @pytest.mark.slow
 def test_a_search_begun_back_under_a_biased_gps_re_anchors_at_the_silence(road):
     """70 s of fixes all 150 m off, then none, on routes the map did not call lost under GPS: with
-    reloc_gps_replay_m (250 m) the search begun at the silence has already been fed the last 250 m driven under the
+    SearchParams.gps_replay_m (250 m) the search begun at the silence has already been fed the last 250 m driven under the
     fixes, so it re-anchors sooner, mostly at the silence itself (measured, routes 6-9: 79.0 / 101.9 / 79.1 / 81.6 s
     against 101.1 / 110.3 / 105.3 / 98.9 s begun at the silence; each ending within 7 m of the truth either way).
-    reloc_gps_fit_min is off here: route 7's biased fixes leave the estimate on parallel streets for most of the
+    SearchParams.gps_fit_min is off here: route 7's biased fixes leave the estimate on parallel streets for most of the
     last 300 m, so by default GPS's silence begins no search there (the estimate is called lost later instead:
-    first re-anchoring at 153.8 s). The fixes are not registered on the roads first (reloc_register_ratio 0: that
+    first re-anchoring at 153.8 s). The fixes are not registered on the roads first (SearchParams.register_ratio 0: that
     would re-anchor at the silence without a search, test_register.py)."""
     last_fix_s = 69.0
     at_silence = 0
@@ -449,12 +458,12 @@ def test_a_search_begun_back_under_a_biased_gps_re_anchors_at_the_silence(road):
         ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
         times = []
         for replay_m in (0.0, 250.0):
-            cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_gps_replay_m=replay_m,
-                               reloc_gps_fit_min=0.0, reloc_register_ratio=0.0)
-            eng, err = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0))
+            cfg = FusionConfig(map_relocalisation=True, road_fixes=False)
+            eng, err = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0),
+                             search=dict(gps_replay_m=replay_m, gps_fit_min=0.0, register_ratio=0.0))
             assert eng.relocalised_at and err < 15.0, (seed, replay_m, err)
             times.append(eng.relocalised_at[0][0])
-        silent_s = last_fix_s + CFG.reloc_after_gps_s
+        silent_s = last_fix_s + SEARCH.after_gps_s
         assert silent_s - 0.5 <= times[1] < times[0], (seed, times)
         at_silence += times[1] <= silent_s + 3.0
     assert at_silence >= 3
@@ -465,12 +474,12 @@ def test_a_map_re_anchoring_mends_the_path_its_search_matched(road):
     """The same biased window: the final estimates of the frames the search matched (from its start to the
     re-anchoring) are moved with the re-anchoring, so they lie near the truth, where the online estimates keep
     GPS's 150 m bias (median over the last 15 s before it, measured: 0.5 m against 147.9 m unmended). (The fixes
-    are not registered on the roads first, reloc_register_ratio 0: that re-anchoring reaches back to its fixes and
+    are not registered on the roads first, SearchParams.register_ratio 0: that re-anchoring reaches back to its fixes and
     re-estimates the frames since, test_register.py.)"""
     x, y, yaw, _ = graph_route(road, 3, 2400.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, 3, heading_rad=0.3, noise_m=0.02)
-    cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_register_ratio=0.0)
-    eng, _ = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0))
+    cfg = FusionConfig(map_relocalisation=True, road_fixes=False)
+    eng, _ = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0), search=dict(register_ratio=0.0))
     traj = eng.trajectory()
     t_s, online = eng.online_estimates()
     at = {round(t / 0.1): p for t, p in zip(t_s, online)}
@@ -483,7 +492,7 @@ def test_a_map_re_anchoring_mends_the_path_its_search_matched(road):
 
 @pytest.mark.parametrize("on_roads", [True, False])
 def test_a_mend_that_would_take_a_path_off_its_roads_is_not_made(road, on_roads):
-    """reloc_mend_keep_ratio: a drive tracked on its roads under GPS; a re-anchoring whose answer turns the last frame
+    """SearchParams.mend_keep_ratio: a drive tracked on its roads under GPS; a re-anchoring whose answer turns the last frame
     by 25° would swing the 40 s before it (about 400 m of road) off the roads: with the check the final estimates
     stay as they were. The same path moved 150 m off its roads first (as a biased window leaves it), and mended
     back by the same correction that undoes it, is moved either way."""
@@ -491,21 +500,23 @@ def test_a_mend_that_would_take_a_path_off_its_roads_is_not_made(road, on_roads)
 
     x, y, yaw, _ = graph_route(road, 3, 1200.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, 3, heading_rad=0.3, noise_m=0.02)
-    cfg = FusionConfig(road_fixes=False, reloc_mend_keep_ratio=0.5 if on_roads else 0.0)
-    eng, _ = _feed(road, cfg, x, y, ox, oy, oyaw, len(x))
+    keep = dict(mend_keep_ratio=0.5 if on_roads else 0.0)
+    eng, _ = _feed(road, FusionConfig(road_fixes=False), x, y, ox, oy, oyaw, len(x))
     sm = eng.smoother
     k1 = max(sm.smoothed)
     k0 = k1 - 400
     before = {j: sm.smoothed[j] for j in range(k0, k1)}
     was = sm.smoothed[k1]
     swung = gtsam.Pose3(gtsam.Rot3.Yaw(was.rotation().yaw() + math.radians(25.0)), was.translation())
-    eng._anchors.mend_searched(k0, k1, was, swung)
+    with search_params(**keep):
+        eng._anchors.mend_searched(k0, k1, was, swung)
     unchanged = all(sm.smoothed[j].equals(before[j], 1e-12) for j in range(k0, k1))
     assert unchanged is on_roads
     off = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(150.0, -150.0, 0.0))
     for j in range(k0, k1 + 1):
         sm.smoothed[j] = off.compose(before.get(j, was))
-    eng._anchors.mend_searched(k0, k1, off.compose(was), was)
+    with search_params(**keep):
+        eng._anchors.mend_searched(k0, k1, off.compose(was), was)
     err = max(math.hypot(sm.smoothed[j].x() - before[j].x(), sm.smoothed[j].y() - before[j].y()) for j in range(k0, k1))
     assert err < 1e-6, err
 
@@ -671,9 +682,9 @@ def test_the_enclosing_disc_holds_both_and_is_the_smallest(ax, ay, ar, bx, by, b
 
 
 def test_a_search_soon_after_a_map_re_anchoring_also_covers_that_search_s_region(road):
-    """Lost within reloc_doubt_m of driving after a map re-anchoring, the engine searches a region that holds both
+    """Lost within SearchParams.doubt_m of driving after a map re-anchoring, the engine searches a region that holds both
     the lost region and the re-anchoring's own search region grown by the distance driven since (the re-anchoring
-    may have been wrong); farther on, or with reloc_doubt_m 0, the lost region alone."""
+    may have been wrong); farther on, or with SearchParams.doubt_m 0, the lost region alone."""
     x, y, yaw, _ = graph_route(road, 3, 800.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, 3, noise_m=0.02)
     cfg = FusionConfig(map_relocalisation=True)
@@ -686,12 +697,12 @@ def test_a_search_soon_after_a_map_re_anchoring_also_covers_that_search_s_region
     got = eng._map_search._doubting(k, lost)
     for r, radius in ((lost, lost.radius_m), (old, old.radius_m + 0.9 * driven)):
         assert math.hypot(r.x_m - got.x_m, r.y_m - got.y_m) + radius <= got.radius_m + 1e-6
-    assert got.radius_m <= cfg.reloc_max_radius_m
+    assert got.radius_m <= SEARCH.max_radius_m
     assert eng._map_search._doubting(k, lost) != lost
-    eng._map_search.cfg = dataclasses.replace(cfg, reloc_doubt_m=0.0)
-    assert eng._map_search._doubting(k, lost) == lost
-    eng._map_search.cfg = dataclasses.replace(cfg, reloc_doubt_m=0.5 * driven)
-    assert eng._map_search._doubting(k, lost) == lost
+    with search_params(doubt_m=0.0):
+        assert eng._map_search._doubting(k, lost) == lost
+    with search_params(doubt_m=0.5 * driven):
+        assert eng._map_search._doubting(k, lost) == lost
 
 
 @settings(max_examples=20, deadline=None)
@@ -699,7 +710,7 @@ def test_a_search_soon_after_a_map_re_anchoring_also_covers_that_search_s_region
        st.floats(10.0, 600.0), st.floats(0.0, 300.0))
 def test_a_gap_while_a_search_runs_also_covers_the_running_search_s_region(road, dx, dy, old_r, driven, new_r, reach):
     """An odometry gap while a search still runs: the gap's search covers its own region and the running search's
-    grown by the distance driven since it began and by the gap's reach (at most reloc_max_radius_m); with no
+    grown by the distance driven since it began and by the gap's reach (at most SearchParams.max_radius_m); with no
     search running, its own region alone."""
     from mapfusion import MapFusion
 
@@ -713,23 +724,25 @@ def test_a_gap_while_a_search_runs_also_covers_the_running_search_s_region(road,
     eng._map_search.search.active = running
     got = eng._map_search._still_open(mine, reach)
     grown = old_r + driven + reach
-    if got.radius_m < cfg.reloc_max_radius_m:
+    if got.radius_m < SEARCH.max_radius_m:
         for r, radius in ((mine, new_r), (running.region, grown)):
             assert math.hypot(r.x_m - got.x_m, r.y_m - got.y_m) + radius <= got.radius_m + 1e-6
         assert got.radius_m <= max(new_r, grown, 0.5 * (math.hypot(dx, dy) + new_r + grown)) + 1e-6  # the smallest
     else:
-        assert got.radius_m == cfg.reloc_max_radius_m
+        assert got.radius_m == SEARCH.max_radius_m
 
 
 def test_a_watched_search_ends_after_its_distance_and_when_another_begins(road):
     x, y, yaw, _ = graph_route(road, 1, 600.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, 1, noise_m=0.02)
-    off = Search(road, dataclasses.replace(CFG, reloc_watch_m=0.0))
+    off = Search(road, CFG)
     r = Relocaliser(road, PARTICLES, Region(x[0], y[0], 300.0))
-    off.watch(r)
-    assert off.watching is None  # reloc_watch_m 0: a search ends when it converges
-    search = Search(road, dataclasses.replace(CFG, reloc_watch_m=200.0))
-    search.watch(r)
+    with search_params(watch_m=0.0):
+        off.watch(r)
+    assert off.watching is None  # SearchParams.watch_m 0: a search ends when it converges
+    search = Search(road, CFG)
+    with search_params(watch_m=200.0):
+        search.watch(r)
     k = 0
     while search.watching is not None:
         search.watched(ox[k], oy[k], oyaw[k], k)
@@ -743,7 +756,7 @@ def test_a_watched_search_ends_after_its_distance_and_when_another_begins(road):
 @pytest.mark.slow
 def test_a_watched_search_takes_a_wrong_re_anchoring_back_to_where_its_posterior_gathers(road):
     """A search that has tracked the truth re-anchors the estimate 200 m off it (as a look-alike path would):
-    watched (reloc_watch_m), its posterior, which holds the truth, re-anchors it back at its next filter steps;
+    watched (SearchParams.watch_m), its posterior, which holds the truth, re-anchors it back at its next filter steps;
     not watched, the estimate stays off to the end of the drive (nothing calls it lost: it is on roads)."""
     from mapfusion.track import planar_of
 
@@ -753,9 +766,13 @@ def test_a_watched_search_takes_a_wrong_re_anchoring_back_to_where_its_posterior
     k_search, k_wrong = 500, 900
 
     def run(watch_m: float):
+        with search_params(watch_m=watch_m):
+            return _run(watch_m)
+
+    def _run(watch_m: float):
         from mapfusion import MapFusion
 
-        cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_watch_m=watch_m)
+        cfg = FusionConfig(map_relocalisation=True, road_fixes=False)
         eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
         r = Relocaliser(road, PARTICLES, Region(x[k_search], y[k_search], 300.0), seed=1)
         for k in range(len(x)):
@@ -804,7 +821,7 @@ def test_a_watched_jump_held_back_by_rival_mass_is_weighed_again_until_the_mass_
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0, y0, 0.0))
     watched = Relocaliser(road, PARTICLES, Region(x0, y0, 60.0))
     eng._map_search.search.watching = watched
-    far = 6.0 * CFG.reloc_watch_apart_m
+    far = 6.0 * SEARCH.watch_apart_m
     answers = iter([Located(x0 + 2.0, y0, 0.0, 0.0, 0, 1, 0.0, 0.9, 2.0, 0.01, 100.0),
                     Located(x0 + far, y0, 0.0, 0.0, 0, 1, 0.0, 0.9, 2.0, 0.01, 105.0),
                     Located(x0 + far + 5.0, y0, 0.0, 0.0, 0, 1, 0.0, 0.95, 2.0, 0.01, 110.0)])
@@ -850,7 +867,7 @@ def _engine_searching(road, cfg, answers, rivals):
 def test_a_search_answer_held_back_by_rival_mass_ends_the_search(road):
     """A running search converges away from the estimate while its posterior still holds rival mass there: no
     re-anchoring, and the search ends (its answer is not weighed again)."""
-    far = 3.0 * CFG.reloc_confirm_m
+    far = 3.0 * SEARCH.confirm_m
     eng, pred, running, anchored = _engine_searching(road, CFG, [far, far + 5.0], [True, False])
     eng._map_search.when_lost(1, pred)
     assert anchored == [] and eng._map_search.search.active is None
@@ -858,20 +875,20 @@ def test_a_search_answer_held_back_by_rival_mass_ends_the_search(road):
 
 @settings(max_examples=40, deadline=None)
 @given(off_m=st.floats(0.0, 40.0), confirm_m=st.floats(0.0, 30.0))
-def test_a_converged_answer_farther_than_reloc_confirm_m_re_anchors_the_estimate(road, off_m, confirm_m):
+def test_a_converged_answer_farther_than_confirm_m_re_anchors_the_estimate(road, off_m, confirm_m):
     """A search that converges ``off_m`` from the estimate, with no rival mass at it, re-anchors the estimate
-    there exactly when ``off_m`` exceeds ``reloc_confirm_m``; nearer, it only confirms it (and ends)."""
-    eng, pred, _, anchored = _engine_searching(road, dataclasses.replace(CFG, reloc_confirm_m=confirm_m), [off_m],
-                                               [False])
+    there exactly when ``off_m`` exceeds ``SearchParams.confirm_m``; nearer, it only confirms it (and ends)."""
+    eng, pred, _, anchored = _engine_searching(road, CFG, [off_m], [False])
     x0 = pred.x()
-    eng._map_search.when_lost(1, pred)
+    with search_params(confirm_m=confirm_m):
+        eng._map_search.when_lost(1, pred)
     off_m = (x0 + off_m) - x0  # (the distance as the engine sees it, to the last bit)
     assert anchored == ([pytest.approx(off_m)] if off_m > confirm_m else [])
     assert eng._map_search.search.active is None
 
 
 def test_a_search_answer_12_m_from_the_estimate_is_taken_by_default(road):
-    """The default reloc_confirm_m re-anchors an estimate 12 m from a converged answer: the kidnapped family's VO
+    """The default SearchParams.confirm_m re-anchors an estimate 12 m from a converged answer: the kidnapped family's VO
     jump Helsinki s8, whose gap's step was carried 31 m short (the vehicle braked to a stop late in the gap), kept
     13-19 m of along-road error for 80 s after its search converged 12 m away with a 2.9 m spread (5 m from the
     truth); re-anchored there, 5 m then 1-4 m (docs/method.md)."""
@@ -881,7 +898,7 @@ def test_a_search_answer_12_m_from_the_estimate_is_taken_by_default(road):
 
 
 def test_a_search_that_still_holds_mass_at_the_estimate_does_not_move_it(road):
-    """reloc_rival_mass: a posterior with mass near the estimate has not ruled its place out (no re-anchoring);
+    """SearchParams.rival_mass: a posterior with mass near the estimate has not ruled its place out (no re-anchoring);
     one with none near it has; 0 turns the test off."""
     import gtsam
 
@@ -893,12 +910,13 @@ def test_a_search_that_still_holds_mass_at_the_estimate_does_not_move_it(road):
     r.add(0.0, 0.0, 0.0)  # (spreads the particles over the region's roads)
     answer = Located(x0 + 500.0, y0, 0.0, 0.0, 0, 1, 0.0, 0.9, 2.0, 0.01, 150.0)
     for rival, at, expected in ((0.05, (x0, y0), True), (0.05, (x0 + 1000.0, y0), False), (0.0, (x0, y0), False)):
-        eng = MapFusion(road, dataclasses.replace(CFG, reloc_rival_mass=rival), odometry_rate_hz=10.0)
+        eng = MapFusion(road, CFG, odometry_rate_hz=10.0)
         eng.add_odometry(0.0, np.eye(4))
         pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(at[0], at[1], 0.0))
         near = r.particles.mass_within(at[0], at[1], 2.0 * PARTICLES.converge_radius_m)
         assert (near >= 0.05) == (at == (x0, y0))  # (the setup: the region's roads lie around the estimate)
-        assert eng._map_search._rival_at_estimate(0, pred, answer, r) is expected
+        with search_params(rival_mass=rival):
+            assert eng._map_search._rival_at_estimate(0, pred, answer, r) is expected
 
 
 def test_an_answer_near_the_estimate_is_not_its_own_rival(road):
@@ -917,7 +935,7 @@ def test_an_answer_near_the_estimate_is_not_its_own_rival(road):
     answer = Located(x0, y0, 0.0, 0.0, 0, 1, 0.0, 1.0, 2.0, 0.01, 150.0)
     pred = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(x0 + 30.0, y0, 0.0))
     rr = PARTICLES.converge_radius_m
-    assert r.particles.mass_within(pred.x(), pred.y(), 2.0 * rr) >= CFG.reloc_rival_mass  # (counted in full)
+    assert r.particles.mass_within(pred.x(), pred.y(), 2.0 * rr) >= SEARCH.rival_mass  # (counted in full)
     eng = MapFusion(road, CFG, odometry_rate_hz=10.0)
     eng.add_odometry(0.0, np.eye(4))
     assert eng._map_search._rival_at_estimate(0, pred, answer, r) is False
@@ -927,22 +945,23 @@ def test_an_answer_near_the_estimate_is_not_its_own_rival(road):
 @given(frames=st.lists(st.tuples(st.floats(0.0, 40.0), st.booleans()), min_size=1, max_size=120),
        window_m=st.floats(1.0, 300.0))
 def test_the_road_fit_is_the_on_road_share_of_the_last_window(frames, window_m):
-    """reloc_gps_fit_min's measure: the share (by distance) of the shortest run of latest frames that covers
-    reloc_gps_fit_m (all frames while they cover less; within FIT_TIE_M counts as covering) whose pose lay on a
+    """SearchParams.gps_fit_min's measure: the share (by distance) of the shortest run of latest frames that covers
+    SearchParams.gps_fit_m (all frames while they cover less; within FIT_TIE_M counts as covering) whose pose lay on a
     road, in [0, 1]; None before any driving. Checked against that definition computed afresh."""
     from types import SimpleNamespace
 
     from mapfusion.association import FIT_TIE_M, MapAssociation
     from mapfusion.counters import Counters
 
-    cfg = dataclasses.replace(CFG, map_relocalisation=True, reloc_gps_fit_m=window_m)
+    cfg = dataclasses.replace(CFG, map_relocalisation=True)
     assoc = MapAssociation.__new__(MapAssociation)  # (only the record's state: no road map needed)
     assoc.cfg, assoc.counters = cfg, Counters()
     assoc._fit, assoc._fit_m, assoc._fit_on_m = collections.deque(), 0.0, 0.0
     on_road = SimpleNamespace(angle_deg=0.0, lateral_m=1.0, lanes=1)
-    off_road = SimpleNamespace(angle_deg=0.0, lateral_m=cfg.lane_width_m + cfg.reloc_gps_fit_margin_m + 0.5, lanes=1)
+    off_road = SimpleNamespace(angle_deg=0.0, lateral_m=cfg.lane_width_m + SEARCH.gps_fit_margin_m + 0.5, lanes=1)
     for i, (moved, on) in enumerate(frames):
-        assoc._record_fit(on_road if on else (off_road if i % 2 else None), moved)
+        with search_params(gps_fit_m=window_m):
+            assoc._record_fit(on_road if on else (off_road if i % 2 else None), moved)
         total = on_m = 0.0
         for m, o in reversed(frames[: i + 1]):
             if total >= window_m - FIT_TIE_M:
@@ -959,22 +978,23 @@ def test_the_road_fit_is_the_on_road_share_of_the_last_window(frames, window_m):
 
 @pytest.mark.slow
 def test_gps_that_left_the_estimate_on_the_roads_gets_no_second_opinion(road):
-    """reloc_gps_fit_min: 70 s of good fixes leave the estimate on the roads, so GPS's silence begins no search
+    """SearchParams.gps_fit_min: 70 s of good fixes leave the estimate on the roads, so GPS's silence begins no search
     (which could only confirm it or, converging on a look-alike path, move it away: held-out 60-run set, Helsinki
     clear s14, 3.9 -> 168 m when measured); the same drive with every fix 150 m off leaves it off the roads and
     the search begins and re-anchors; with the measure off (0) the good drive is searched again. (The fixes are not
-    registered on the roads first, reloc_register_ratio 0: that would re-anchor the biased drive without a search,
+    registered on the roads first, SearchParams.register_ratio 0: that would re-anchor the biased drive without a search,
     test_register.py.)"""
     seed = 6
     x, y, yaw, _ = graph_route(road, seed, 2400.0)
     ox, oy, oyaw = drifting_odometry(x, y, yaw, seed, heading_rad=0.3, noise_m=0.02)
-    cfg = FusionConfig(map_relocalisation=True, road_fixes=False, reloc_register_ratio=0.0)
-    good, err_good = _feed(road, cfg, x, y, ox, oy, oyaw, 700)
+    cfg = FusionConfig(map_relocalisation=True, road_fixes=False)
+    nreg = dict(register_ratio=0.0)
+    good, err_good = _feed(road, cfg, x, y, ox, oy, oyaw, 700, search=nreg)
     assert good._map_search.search.searches == 0 and good.counters.map_relocalisations == 0
     assert err_good < 15.0
-    biased, err_biased = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0))
+    biased, err_biased = _feed(road, cfg, x, y, ox, oy, oyaw, 700, fix_offset=(106.0, 106.0), search=nreg)
     assert biased._map_search.search.searches >= 1 and biased.counters.map_relocalisations >= 1 and err_biased < 15.0
-    always, _ = _feed(road, dataclasses.replace(cfg, reloc_gps_fit_min=0.0), x, y, ox, oy, oyaw, 700)
+    always, _ = _feed(road, cfg, x, y, ox, oy, oyaw, 700, search=dict(nreg, gps_fit_min=0.0))
     assert always._map_search.search.searches >= 1
 
 

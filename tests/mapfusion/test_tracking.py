@@ -17,7 +17,7 @@ from mapfusion import FusionConfig, MapFusion, RoadMap
 from mapfusion.counters import Counters
 from mapfusion.relocalise import SEARCH_PARTICLES, Located
 from mapfusion.tracking import ROAD_FIX_PARAMS, RoadFixes
-from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step
+from tests.helpers import MAPS, drifting_odometry, graph_route, odometry_step, search_params
 
 ON = FusionConfig(road_fixes=True)
 OFF = FusionConfig(road_fixes=False)
@@ -245,7 +245,7 @@ def test_a_steady_start_waits_for_the_turn_to_end(road, turn_deg_per_m, straight
 
 @pytest.mark.slow
 def test_road_fixes_wait_while_a_search_runs(road):
-    """With map_relocalisation and reloc_gps_fit_min 0 a search starts when GPS falls silent (a second opinion on
+    """With map_relocalisation and SearchParams.gps_fit_min 0 a search starts when GPS falls silent (a second opinion on
     where GPS left the estimate, here on the roads: the default would not search; begun at the silence, with no
     replay of the path under GPS); no road fix enters the graph while it runs (the fixes' particles start around
     the very estimate the search questions), and the fixes come once it has ended; without the map search (no
@@ -254,20 +254,20 @@ def test_road_fixes_wait_while_a_search_runs(road):
     drive = _wandering(road, 2)
     seen = {}
     for waits in (True, False):
-        cfg = dataclasses.replace(ON, map_relocalisation=waits, reloc_gps_fit_min=0.0, reloc_gps_replay_m=0.0)
-        eng = MapFusion(road, cfg, odometry_rate_hz=10.0)
+        eng = MapFusion(road, dataclasses.replace(ON, map_relocalisation=waits), odometry_rate_hz=10.0)
         x, y, ox, oy, oyaw = drive
         during = after = searched = 0
-        for k in range(len(x)):
-            if k % 10 == 0 and k < 400:
-                lat, lon = road.projection.to_geo(x[k], y[k])
-                eng.add_gps(0.1 * k, float(lat), float(lon), None, 1.0)
-            searching, before = eng._map_search.running, eng.counters.road_fixes
-            eng.add_odometry(0.1 * k, odometry_step(ox, oy, oyaw, k))
-            new = eng.counters.road_fixes - before
-            searched += searching
-            during += new if searching else 0
-            after += new if not searching and k >= 400 else 0
+        with search_params(gps_fit_min=0.0, gps_replay_m=0.0):
+            for k in range(len(x)):
+                if k % 10 == 0 and k < 400:
+                    lat, lon = road.projection.to_geo(x[k], y[k])
+                    eng.add_gps(0.1 * k, float(lat), float(lon), None, 1.0)
+                searching, before = eng._map_search.running, eng.counters.road_fixes
+                eng.add_odometry(0.1 * k, odometry_step(ox, oy, oyaw, k))
+                new = eng.counters.road_fixes - before
+                searched += searching
+                during += new if searching else 0
+                after += new if not searching and k >= 400 else 0
         seen[waits] = (during, after, searched)
     assert seen[True][2] > 0 and seen[True][0] == 0 and seen[True][1] > 0, seen
     assert seen[False][2] == 0 and seen[False][1] > 0, seen
@@ -276,7 +276,7 @@ def test_road_fixes_wait_while_a_search_runs(road):
 @pytest.mark.parametrize("relocalise", [True, False])
 def test_the_road_fixes_are_kept_near_only_with_a_search_to_move_the_estimate_far(road, relocalise):
     """With map_relocalisation (whose search moves a lost estimate far), every road fix is kept near the estimate
-    while the estimate's last reloc_gps_fit_m lay on the roads (kidnapped GPS bias Helsinki s2 and s30: good
+    while the estimate's last SearchParams.gps_fit_m lay on the roads (kidnapped GPS bias Helsinki s2 and s30: good
     estimates were moved 190-460 m by road fixes otherwise) —
     measured by the association only with map_relocalisation. Without it the fixes may move an estimate far (they
     are the only way back). A drive tracked on Helsinki's roads after its GPS ends: at its end the path kept to the
