@@ -40,7 +40,12 @@ def configuration_markdown() -> str:
            "maximum is still at most 10⁹ of its unit: `mapfusion.config.GENERIC_MAX`).", "",
            "## `[mapfusion]`: the engine (`FusionConfig`)", "",
            "The `[mapfusion]` table of a scenario file, `mapfusion fuse --config FILE`, `mapfusion sweep --variant",
-           "NAME=FILE` and `--param NAME=...`. `FusionConfig.faithful()` is the paper's section III read directly.", ""]
+           "NAME=FILE` and `--param NAME=...`. `FusionConfig.faithful()` is the paper's section III read directly.", "",
+           "The engine's fixed values are not settings: each is named beside the code that uses it, with its unit and",
+           "source — `mapfusion.relocalise.ParticleParams` (the road particles), `mapfusion.relocalise.SearchParams`",
+           "(the map search), `mapfusion.tracking.RoadFixParams` (the road fixes) and module constants such as",
+           "`mapfusion.track.OUTAGE_S`. A table that names a former setting is refused with one line giving its",
+           "value and where it lives now (`FusionConfig.RETIRED_KEYS`).", ""]
     out += _table(FusionConfig)
     for title, cls in (("Scenario (top level)", Scenario), ("`[traffic]`", TrafficConfig), ("`[route]`", RouteConfig),
                        ("`[weather]`", WeatherConfig), ("`[gps]`", GpsConfig), ("`[imu]`", ImuParams),

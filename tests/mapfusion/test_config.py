@@ -77,7 +77,11 @@ def test_a_mode_given_by_name_is_that_mode_and_a_wrong_name_is_refused():
 
 
 @pytest.mark.parametrize("key, says", [("hmm_lost_after_m", "is renamed lost_after_m"),
-                                       ("road_tracking", "was removed"), ("hmm_beam", "was removed")])
+                                       ("road_tracking", "was removed"), ("hmm_beam", "was removed"),
+                                       ("outage_s", "is no longer a setting: fixed as mapfusion.track.OUTAGE_S = 1.0 s"),
+                                       ("reloc_step_m", "is no longer a setting: fixed as "
+                                                        "mapfusion.relocalise.ParticleParams.step_m = 5.0 m"),
+                                       ("gps_reach_back", "was removed: a GPS re-localisation always mends")])
 def test_a_retired_key_is_refused_with_one_line_saying_what_became_of_it(tmp_path, key, says):
     from mapfusion.config import from_mapping
     from mapfusion.errors import ConfigError
@@ -92,3 +96,26 @@ def test_a_retired_key_is_refused_with_one_line_saying_what_became_of_it(tmp_pat
 def test_no_retired_key_is_a_field():
     """A key cannot be both retired and live: the loader would refuse a field the engine reads."""
     assert not set(FusionConfig.RETIRED_KEYS) & {f.name for f in dataclasses.fields(FusionConfig)}
+
+
+def test_the_engine_has_at_most_80_settings():
+    """Issue 67: few knobs. The values fixed by measurement live beside the code that uses them."""
+    assert len(dataclasses.fields(FusionConfig)) <= 80
+
+
+_FIXED_AS = re.compile(r"is no longer a setting: fixed as (mapfusion\.[\w.]+) = (\S+)")
+FIXED = {k: m.groups() for k, v in FusionConfig.RETIRED_KEYS.items() if (m := _FIXED_AS.match(v))}
+
+
+@pytest.mark.parametrize("key", sorted(FIXED))
+def test_every_fixed_value_named_by_a_retired_key_exists_with_that_value(key):
+    """A retired key that says where its value lives now names a value that is there, as stated: the message
+    cannot drift from the code."""
+    import importlib
+
+    where, value = FIXED[key]
+    parts = where.split(".")
+    obj = importlib.import_module(".".join(parts[:2]))
+    for name in parts[2:]:
+        obj = getattr(obj, name)  # (a dataclass's field: its default, the class attribute)
+    assert repr(obj) == value, (key, obj)
