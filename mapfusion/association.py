@@ -20,13 +20,12 @@ import math
 import gtsam
 import numpy as np
 
-from . import factors
+from . import factors, relocalise
 from .config import FusionConfig, PriorTarget
 from .counters import Counters
 from .geometry import on_line
 from .matcher import Match, lateral_bound_ok, map_pose, match, match_candidates
 from .roadmap import RoadMap
-from . import relocalise
 
 #: Half-width of the band the edge and band targets use, as a fraction of the road width (lanes × lane width): 0.5
 #: is the road's own half-width, 1 the paper's trigger distance. Source: issue 16; by measurement.

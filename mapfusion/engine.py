@@ -35,13 +35,12 @@ from .initialisation import Initialiser
 from .motion import MotionFusion
 from .reanchoring import GpsReanchoring, OutageCarry
 from .registering import FixRegistration, MapAnchors
-from .relocalise import Located
+from .relocalise import SEARCH_PARTICLES, Located
 from .roadmap import RoadMap
 from .searching import MapSearch
 from .stream import OnFinal, Release
 from .track import Alignment, JumpGuard, track_for
 from .tracking import RoadFixes
-from .relocalise import SEARCH_PARTICLES
 
 log = logging.getLogger(__name__)
 

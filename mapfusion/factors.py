@@ -20,9 +20,9 @@ import math
 import gtsam
 import numpy as np
 
+from . import relocalise
 from .config import FusionConfig, PriorMode, RobustKernel, StateModel
 from .track import OUTAGE_S
-from . import relocalise
 
 #: Least rotation σ of an outage step. Unit: deg. Source: by measurement.
 OUTAGE_ROT_SIGMA_DEG = 20.0

@@ -28,17 +28,16 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numpy as np
-
 import gtsam
+import numpy as np
 
 from . import factors
 from .config import FusionConfig, ScaleFormula, StateModel
 from .counters import Counters
 from .factors import X
 from .metrics import umeyama
-from .track import Alignment, Track
 from .odometry_trust import SCALE_FIT_MIN_FIXES, SCALE_FIT_OUTLIER_FLOOR_M, SCALE_FIT_OUTLIER_SIGMA
+from .track import Alignment, Track
 
 log = logging.getLogger(__name__)
 

@@ -17,15 +17,13 @@ from . import factors
 from .config import FusionConfig, OutageStep, StateModel
 from .counters import Counters
 from .estimate import Estimate
+from .factors import OUTAGE_ROT_SIGMA_DEG
 from .gps_gate import GpsGate
 from .initialisation import Initialiser
 from .metrics import umeyama
-from .relocalise import RoadFollower
+from .relocalise import RELOC_SEED, SEARCH_PARTICLES, RoadFollower
 from .roadmap import RoadMap
 from .track import JumpGuard, Track, level, spread_back
-from .factors import OUTAGE_ROT_SIGMA_DEG
-from .relocalise import RELOC_SEED
-from .relocalise import SEARCH_PARTICLES
 
 log = logging.getLogger(__name__)
 

@@ -11,20 +11,18 @@ import math
 import gtsam
 import numpy as np
 
-from . import factors
+from . import factors, relocalise
 from .association import MapAssociation
 from .config import FusionConfig, StateModel
 from .counters import Counters
 from .estimate import Estimate
+from .gps_gate import RELOCALISE_YAW_SIGMA_FLOOR_DEG
 from .initialisation import Initialiser
 from .reanchoring import placed_on
 from .register import register_on_roads
-from .relocalise import Region
+from .relocalise import RELOC_RADIUS_M, Region
 from .roadmap import RoadMap
 from .track import Track, planar_of
-from .gps_gate import RELOCALISE_YAW_SIGMA_FLOOR_DEG
-from .relocalise import RELOC_RADIUS_M
-from . import relocalise
 
 log = logging.getLogger(__name__)
 

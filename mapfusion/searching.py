@@ -14,20 +14,18 @@ import math
 import gtsam
 import numpy as np
 
+from . import relocalise
 from .association import MapAssociation
 from .config import FusionConfig, OutageStep
 from .estimate import Estimate
+from .factors import OUTAGE_ROT_SIGMA_DEG
 from .geometry import cumulative_length
 from .initialisation import Initialiser
 from .reanchoring import OutageCarry
 from .registering import FixRegistration, MapAnchors
-from .relocalise import Guess, Located, Region, Relocaliser, Search, enclosing_disc
+from .relocalise import RELOC_RADIUS_M, SEARCH_PARTICLES, Guess, Located, Region, Relocaliser, Search, enclosing_disc
 from .roadmap import RoadMap
 from .track import Track, planar_of
-from .factors import OUTAGE_ROT_SIGMA_DEG
-from .relocalise import RELOC_RADIUS_M
-from .relocalise import SEARCH_PARTICLES
-from . import relocalise
 
 log = logging.getLogger(__name__)
 

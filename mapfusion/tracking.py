@@ -28,10 +28,10 @@ how settled the posterior is (``ROAD_FIX_KLD_EPSILON``: KLD-sampling), and a sta
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 import logging
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
