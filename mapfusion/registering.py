@@ -20,15 +20,11 @@ from .gps_gate import RELOCALISE_YAW_SIGMA_FLOOR_DEG
 from .initialisation import Initialiser
 from .reanchoring import placed_on
 from .register import register_on_roads
-from .relocalise import RELOC_RADIUS_M, Region
+from .relocalise import Region
 from .roadmap import RoadMap
 from .track import Track, planar_of
 
 log = logging.getLogger(__name__)
-
-#: Length of the fixes' path registered on the roads (SearchParams.register_ratio), back from the last fix. Unit: m.
-#: Source: issue 17: the kidnapped family's fix windows (120 s, 250-900 m).
-RELOC_REGISTER_M = 1000.0
 
 
 class MapAnchors:
@@ -157,20 +153,20 @@ class FixRegistration:
         return True
 
     def _window(self) -> tuple[list[tuple[float, float, float]], float]:
-        """The fixes (t, x, y) of the last ``RELOC_REGISTER_M`` of GPS's path, and that path's length."""
+        """The fixes (t, x, y) of the last ``SearchParams.register_m`` of GPS's path, and that path's length."""
         fixes: list[tuple[float, float, float]] = []
-        length_m = 0.0
+        length_m, most_m = 0.0, relocalise.SEARCH_PARAMS.register_m
         for t, x, y, _ in reversed(self._initialiser.fixes):
             if fixes:
                 length_m += math.hypot(x - fixes[-1][1], y - fixes[-1][2])
-                if length_m > RELOC_REGISTER_M:
+                if length_m > most_m:
                     break
             fixes.append((t, x, y))
         fixes.reverse()
         return fixes, length_m
 
     def register(self, k: int, pred: gtsam.Pose3) -> bool:
-        """GPS has fallen silent: its fixes of the last ``RELOC_REGISTER_M`` registered on the roads
+        """GPS has fallen silent: its fixes of the last ``SearchParams.register_m`` registered on the roads
         (:func:`~mapfusion.register.register_on_roads`, ``SearchParams.register_ratio``). When the shift is decisive,
         the odometry of the last ``SearchParams.register_place_m`` of fixes is placed on them, shifted, by a rigid fit
         (as a GPS re-localisation places it; not the estimate moved: after a biased window its heading may be off too),
@@ -178,7 +174,7 @@ class FixRegistration:
         sp = relocalise.SEARCH_PARAMS
         fixes, length_m = self._window()
         sep = sp.register_separation_m
-        reg = register_on_roads(self.road, np.array([f[1:] for f in fixes]).reshape(-1, 2), RELOC_RADIUS_M,
+        reg = register_on_roads(self.road, np.array([f[1:] for f in fixes]).reshape(-1, 2), sp.radius_m,
                                 separation_m=sep)
         if reg is None or not reg.decisive(sp.register_ratio, sp.register_rms_m, sep):
             if reg is not None:
@@ -202,7 +198,7 @@ class FixRegistration:
         was = self.track.online[k0]
         assert was is not None
         self._anchors.reanchor(k0, was, pose, placed_sigma_m, yaw_sigma, self._anchors.replay_start(k, length_m),
-                               Region(pred.x(), pred.y(), RELOC_RADIUS_M), 0.0, k, (placed, sigma_m))
+                               Region(pred.x(), pred.y(), sp.radius_m), 0.0, k, (placed, sigma_m))
         return True
 
     def _fixes_on_frames(self, fixes: list[tuple[float, float, float]], k: int) -> list[tuple[float, float, int]]:

@@ -50,18 +50,6 @@ __all__ = ["Region", "Located", "RoadParticles", "Relocaliser", "enclosing_disc"
 #: seeds that search, whose draws then do not depend on the searches before it. Source: reproducibility.
 RELOC_SEED = 0
 
-#: A search not converged after this much driving starts again around the estimate with twice the radius. Unit: m.
-#: Source: issue 17.
-RELOC_GIVE_UP_M = 1500.0
-
-#: Radius of the search region around the estimate where a road last explained it, when lost (and around the
-#: estimate when GPS falls silent). Unit: m. Source: issue 17.
-RELOC_RADIUS_M = 300.0
-
-#: Growth of that radius per metre driven since a road last explained the estimate. Unit: m/m. Source: issue 17:
-#: the vehicle is at most that far from there.
-RELOC_RADIUS_PER_M = 1.0
-
 #: Probability that a road fix particle on a two-way road turns back in one step: vehicles turn back (SUMO's routes
 #: at dead ends and junctions), and particles that cannot are all wrong after it. Source: issue 16: Helsinki seed 5
 #: turns back at 253 s.
@@ -327,6 +315,35 @@ class SearchParams:
 
     #: Largest search region. Unit: m. Source: issue 17: 2 km in a city at 10 Hz on one core.
     max_radius_m: float = 2000.0
+
+    #: A search not converged after this much driving starts again around the estimate with twice the radius. Unit: m.
+    #: Source: issue 17.
+    give_up_m: float = 1500.0
+
+    #: Radius of the search region around the estimate where a road last explained it, when lost (and around the
+    #: estimate when GPS falls silent). Unit: m. Source: issue 17.
+    radius_m: float = 300.0
+
+    #: Growth of that radius per metre driven since a road last explained the estimate. Unit: m/m. Source: issue 17:
+    #: the vehicle is at most that far from there.
+    radius_per_m: float = 1.0
+
+    #: Length of the fixes' path registered on the roads (SearchParams.register_ratio), back from the last fix. Unit: m.
+    #: Source: issue 17: the kidnapped family's fix windows (120 s, 250-900 m).
+    register_m: float = 1000.0
+
+    #: Radius of the search after an odometry gap beyond the distance the vehicle may have driven through it (the
+    #: estimate before the gap was good to about this). Unit: m. Source: issue 17: a smaller region holds fewer look-
+    #: alike paths.
+    gap_margin_m: float = 100.0
+
+    #: The search begun after an odometry gap starts from the engine's own guess (the step carried along the road,
+    #: outage_step): its particles weighted floor + (1 − floor) × a Gaussian around that pose (σ of the carried step:
+    #: ParticleParams.sigma_m + outage_step_fraction × its length, and OUTAGE_ROT_SIGMA_DEG), so that places the guess
+    #: rules out keep this share of the weight; 1: uniform over the region. Source: issue 17 (kidnapped VO jumps:
+    #: carried steps 2–50 m off in most runs, while a uniform search took 600–1,000 m of Kotka's long roads to
+    #: converge).
+    gap_guess_floor: float = 0.05
 
 
 #: The engine's map search (read as ``relocalise.SEARCH_PARAMS`` where it decides).
@@ -917,17 +934,17 @@ class Search:
         return loc
 
     def widen_if_stuck(self, x_m: float, y_m: float, frame: int | None = None) -> None:
-        """A search that has not converged over ``RELOC_GIVE_UP_M`` starts again around (x, y) with twice
+        """A search that has not converged over ``SearchParams.give_up_m`` starts again around (x, y) with twice
         its radius (up to ``SearchParams.max_radius_m``): the vehicle may have left the region."""
         a = self.active
-        if a is not None and a.particles.driven_m >= RELOC_GIVE_UP_M:
+        if a is not None and a.particles.driven_m >= SEARCH_PARAMS.give_up_m:
             self.begin(Region(x_m, y_m, min(2.0 * a.region.radius_m, SEARCH_PARAMS.max_radius_m)), a.scale_range,
                        frame)
 
     def lost_region(self, x_m: float, y_m: float, unexplained_m: float) -> Region:
         """Where to look when lost: around the estimate where a road last explained it (``x_m``, ``y_m``), the
         radius grown with the distance driven since (the vehicle is at most that far from there)."""
-        return Region(x_m, y_m, min(RELOC_RADIUS_M + RELOC_RADIUS_PER_M * unexplained_m,
+        return Region(x_m, y_m, min(SEARCH_PARAMS.radius_m + SEARCH_PARAMS.radius_per_m * unexplained_m,
                                     SEARCH_PARAMS.max_radius_m))
 
     def feed(self, x_m: float, y_m: float, yaw_rad: float, frame: int | None = None) -> Located | None:

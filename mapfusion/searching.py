@@ -23,24 +23,11 @@ from .geometry import cumulative_length
 from .initialisation import Initialiser
 from .reanchoring import OutageCarry
 from .registering import FixRegistration, MapAnchors
-from .relocalise import RELOC_RADIUS_M, SEARCH_PARTICLES, Guess, Located, Region, Relocaliser, Search, enclosing_disc
+from .relocalise import SEARCH_PARTICLES, Guess, Located, Region, Relocaliser, Search, enclosing_disc
 from .roadmap import RoadMap
 from .track import Track, planar_of
 
 log = logging.getLogger(__name__)
-
-#: Radius of the search after an odometry gap beyond the distance the vehicle may have driven through it (the
-#: estimate before the gap was good to about this). Unit: m. Source: issue 17: a smaller region holds fewer look-
-#: alike paths.
-RELOC_GAP_MARGIN_M = 100.0
-
-#: The search begun after an odometry gap starts from the engine's own guess (the step carried along the road,
-#: outage_step): its particles weighted floor + (1 − floor) × a Gaussian around that pose (σ of the carried step:
-#: ParticleParams.sigma_m + outage_step_fraction × its length, and OUTAGE_ROT_SIGMA_DEG), so that places the guess
-#: rules out
-#: keep this share of the weight; 1: uniform over the region. Source: issue 17 (kidnapped VO jumps: carried steps
-#: 2–50 m off in most runs, while a uniform search took 600–1,000 m of Kotka's long roads to converge).
-RELOC_GAP_GUESS_FLOOR = 0.05
 
 
 class MapSearch:
@@ -108,7 +95,7 @@ class MapSearch:
             if self.cfg.outage_step is not OutageStep.odometry:  # (the carried step, and its σ: the speed in the gap)
                 carried = math.hypot(pred.x() - prev.x(), pred.y() - prev.y())
                 reach = max(reach, carried + sp.gap_reach_sigmas * self._carry.carried_sigma_m(carried))
-            region = Region(prev.x(), prev.y(), RELOC_GAP_MARGIN_M + reach)
+            region = Region(prev.x(), prev.y(), sp.gap_margin_m + reach)
             search.begin(self._still_open(region, reach), frame=k, guess=self._gap_guess(prev, pred))
             return
         if assoc.take_became_lost():
@@ -137,16 +124,16 @@ class MapSearch:
 
     def _gap_guess(self, prev: gtsam.Pose3, pred: gtsam.Pose3) -> Guess | None:
         """The engine's own guess across an odometry gap (the step carried along the road from ``prev`` to
-        ``pred``) as the gap's search's prior (``RELOC_GAP_GUESS_FLOOR``; none at 1): σ as the carried step's
+        ``pred``) as the gap's search's prior (``SearchParams.gap_guess_floor``; none at 1): σ as the carried step's
         (``ParticleParams.sigma_m`` + ``outage_step_fraction`` of its length) and ``OUTAGE_ROT_SIGMA_DEG``. Uniform over
         the region, a search on long straight roads holds the right place with every other stretch of road in
         the region for hundreds of metres, while the estimate it should correct strays at the next junction."""
-        if RELOC_GAP_GUESS_FLOOR >= 1.0:
+        floor = relocalise.SEARCH_PARAMS.gap_guess_floor
+        if floor >= 1.0:
             return None
         length_m = math.hypot(pred.x() - prev.x(), pred.y() - prev.y())
         return Guess(pred.x(), pred.y(), self._carry.carried_sigma_m(length_m),
-                     pred.rotation().yaw(), math.radians(OUTAGE_ROT_SIGMA_DEG), RELOC_GAP_GUESS_FLOOR,
-                     (prev.x(), prev.y()))
+                     pred.rotation().yaw(), math.radians(OUTAGE_ROT_SIGMA_DEG), floor, (prev.x(), prev.y()))
 
     def _still_open(self, region: Region, reach_m: float) -> Region:
         """The region of a search begun after an odometry gap (``region``: around the estimate before it) while another
@@ -186,7 +173,7 @@ class MapSearch:
         centre = self.track.online[k0] if k0 < k else pred  # (every frame it steps back over has an estimate)
         assert centre is not None
         search = self.search
-        search.begin(Region(centre.x(), centre.y(), RELOC_RADIUS_M), frame=k)
+        search.begin(Region(centre.x(), centre.y(), sp.radius_m), frame=k)
         active = search.active
         assert active is not None
         for j in range(k0, k):

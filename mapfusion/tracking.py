@@ -8,20 +8,20 @@ from wrong roads. The particles keep many places and scales at once, each weighe
 odometry's shape since the start fits the roads it would have driven (:class:`~mapfusion.relocalise.
 RoadParticles`): their answer does not depend on the estimate, so it can pull a lost estimate back.
 They start on the roads within ``RoadFixParams.radius_m`` (at least 3 σ) of the estimate when no GPS fix
-was used for ``ROAD_FIX_AFTER_GPS_S``, their scales log-uniform within the estimate's scale ×/÷
+was used for ``RoadFixParams.after_gps_s``, their scales log-uniform within the estimate's scale ×/÷
 ``RoadFixParams.scale_factor`` and walking (``ParticleParams.scale_walk``) — the map observes the scale as it
-observes the place. Every ``RoadFixParams.every_m`` of driving, when one disc of ``ROAD_FIX_CLUSTER_M``
+observes the place. Every ``RoadFixParams.every_m`` of driving, when one disc of ``RoadFixParams.cluster_m``
 holds ``RoadFixParams.min_mass`` of the posterior, its pose is a fix: σ its spread (at least
 ``RoadFixParams.sigma_m``; Gaussian: under the map priors' robust kernel a fix far from a lost estimate
 would be too weak to pull it back, and the posterior's mass already weighed the roads), and not added
-unless it moved as the estimate did since the last one (``ROAD_FIX_GATE_SIGMA``, ``RoadFixParams.drift``), and
+unless it moved as the estimate did since the last one (``RoadFixParams.gate_sigma``, ``RoadFixParams.drift``), and
 not while the estimate lies on a road within ``RoadFixParams.agree_m`` of it (a right estimate is not pulled
 to the particles' own errors), nor, farther, while the particles still hold ``RoadFixParams.rival_mass`` of their
 posterior near it (they preferred another place without ruling its own out). A new answer (after a start,
-or a step without one) must first hold, confident and continuous, over ``ROAD_FIX_HOLD_M``. Particles that
+or a step without one) must first hold, confident and continuous, over ``RoadFixParams.hold_m``. Particles that
 give no confident answer over ``RoadFixParams.restart_m`` start again around the estimate: a posterior spread
 for long gathers again on look-alike roads far away. A used GPS fix stops them. Their number adapts to
-how settled the posterior is (``ROAD_FIX_KLD_EPSILON``: KLD-sampling), and a start spreads at most
+how settled the posterior is (``RoadFixParams.kld_epsilon``: KLD-sampling), and a start spreads at most
 ``RoadFixParams.particles`` (per scale band) however large its region.
 """
 
@@ -57,27 +57,6 @@ log = logging.getLogger(__name__)
 
 __all__ = ["RoadFixes", "particle_config"]
 
-#: The particles start when no GPS fix was used for this long; a used fix stops them. Unit: s. Source: GPS places
-#: the estimate better while it comes.
-ROAD_FIX_AFTER_GPS_S = 2.0
-
-#: A new answer (after a start, or after a step without one) is a fix only once it has been confident and
-#: continuous over this much driving. Unit: m. Source: issue 16: Helsinki rain seed 2 (one answer 190 m off after a
-#: restart).
-ROAD_FIX_HOLD_M = 50.0
-
-#: An answer that moved, since the last one, farther from where the estimate moved than this × the combined σ (the
-#: answer's spread, the drift) is not a fix (0: no gate). Source: issue 16: never make a drive worse.
-ROAD_FIX_GATE_SIGMA = 5.0
-
-#: Radius of the disc whose mass decides a fix. Unit: m. Source: as ParticleParams.converge_radius_m.
-ROAD_FIX_CLUSTER_M = 25.0
-
-#: ParticleParams.kld_epsilon for the road fixes' particles: once they agree on one place they need far fewer than it
-#: took
-#: to find it. Source: issue 21; by measurement.
-ROAD_FIX_KLD_EPSILON = 0.05
-
 
 @dataclass(frozen=True)
 class RoadFixParams:
@@ -108,7 +87,7 @@ class RoadFixParams:
     #: Driving between two fixes. Unit: m. Source: issue 16; by measurement.
     every_m: float = 5.0
 
-    #: Posterior mass within ROAD_FIX_CLUSTER_M a fix needs. Source: issue 16; as reloc_converge_mass.
+    #: Posterior mass within cluster_m a fix needs. Source: issue 16; as reloc_converge_mass.
     min_mass: float = 0.8
 
     #: Particles that gave no confident answer over this much driving start again around the estimate (a posterior
@@ -129,7 +108,7 @@ class RoadFixParams:
     agree_widths: float = 2.5
 
     #: No fix farther than agree_m from the estimate while the particles hold at least this share of their
-    #: posterior within half that distance of the estimate (outside the answer's ROAD_FIX_CLUSTER_M): they have not
+    #: posterior within half that distance of the estimate (outside the answer's cluster_m): they have not
     #: ruled its place out, only preferred another (a parallel road, a wrong scale) (0: no such test). Source:
     #: issue 16: Helsinki VIO clear-full s3, fixes 43 m off with 15% of the posterior at the estimate; by
     #: measurement.
@@ -164,6 +143,26 @@ class RoadFixParams:
     #: estimate's (an estimate's heading may be wrong). Source: issue 21.
     heading_floor: float = 0.01
 
+    #: The particles start when no GPS fix was used for this long; a used fix stops them. Unit: s. Source: GPS places
+    #: the estimate better while it comes.
+    after_gps_s: float = 2.0
+
+    #: A new answer (after a start, or after a step without one) is a fix only once it has been confident and
+    #: continuous over this much driving. Unit: m. Source: issue 16: Helsinki rain seed 2 (one answer 190 m off after a
+    #: restart).
+    hold_m: float = 50.0
+
+    #: An answer that moved, since the last one, farther from where the estimate moved than this × the combined σ (the
+    #: answer's spread, the drift) is not a fix (0: no gate). Source: issue 16: never make a drive worse.
+    gate_sigma: float = 5.0
+
+    #: Radius of the disc whose mass decides a fix. Unit: m. Source: as ParticleParams.converge_radius_m.
+    cluster_m: float = 25.0
+
+    #: ParticleParams.kld_epsilon for the road fixes' particles: once they agree on one place they need far fewer
+    #: than it took to find it. Source: issue 21; by measurement.
+    kld_epsilon: float = 0.05
+
 
 #: The engine's road fixes.
 ROAD_FIX_PARAMS = RoadFixParams()
@@ -173,10 +172,10 @@ def particle_config(params: RoadFixParams) -> ParticleParams:
     """The road fixes' particles' own view of the configuration: no distance before an answer (they start
     where the vehicle is), the fix's disc and mass, their offsets and turns back, their adaptive count and
     the start's cap."""
-    return dataclasses.replace(SEARCH_PARTICLES, min_distance_m=0.0, converge_radius_m=ROAD_FIX_CLUSTER_M,
+    return dataclasses.replace(SEARCH_PARTICLES, min_distance_m=0.0, converge_radius_m=params.cluster_m,
                                converge_mass=params.min_mass, offset_max_deg=params.offset_max_deg,
                                uturn_probability=ROAD_FIX_UTURN_PROBABILITY, uturn_at_vertex=0.0,
-                               kld_epsilon=ROAD_FIX_KLD_EPSILON, particles=params.particles)
+                               kld_epsilon=params.kld_epsilon, particles=params.particles)
 
 
 class RoadFixes:
@@ -257,7 +256,7 @@ class RoadFixes:
         ``yaw_sigma_rad``: the estimate's marginal yaw σ (for ``heading_sigma_deg``). Returns a fix on
         frame k, or None."""
         self._near_only = near_only
-        silent = t - self.last_gps_t >= ROAD_FIX_AFTER_GPS_S
+        silent = t - self.last_gps_t >= self.params.after_gps_s
         if not (self.enabled and silent and math.isfinite(scale) and scale > 0):
             return None
         x, y, yaw = raw_xy_yaw
@@ -295,10 +294,10 @@ class RoadFixes:
         # may lie anywhere in), the answer has moved as the estimate has, within what the odometry may have
         # drifted — a posterior that jumps to another road, or runs off where the vehicle turned, is not a fix
         gated = False
-        if loc is not None and ROAD_FIX_GATE_SIGMA > 0:
+        if loc is not None and self.params.gate_sigma > 0:
             fx, fy, px, py = self._ref
             ex, ey = loc.x_m - (fx + pred.x() - px), loc.y_m - (fy + pred.y() - py)
-            tolerance = self._ref_slack_m + ROAD_FIX_GATE_SIGMA * math.hypot(sigma, self.params.drift *
+            tolerance = self._ref_slack_m + self.params.gate_sigma * math.hypot(sigma, self.params.drift *
                                                                                  self._since_ref_m)
             gated = math.hypot(ex, ey) > tolerance
         if loc is None or gated:
@@ -310,7 +309,7 @@ class RoadFixes:
             return None
         held, self._held_m = self._held_m, self._held_m + self._since_fix_m
         self._since_fix_m = self._unsure_m = self._since_ref_m = self._ref_slack_m = 0.0
-        if held < ROAD_FIX_HOLD_M:  # a new answer holds, moving as the estimate does, before it is a fix
+        if held < self.params.hold_m:  # a new answer holds, moving as the estimate does, before it is a fix
             self._ref, self._ref_pending = (loc.x_m, loc.y_m, pred.x(), pred.y()), False
             return None
         self._unfixed_m = 0.0
@@ -338,13 +337,13 @@ class RoadFixes:
 
     def _rival_mass(self, loc: Located, pred: gtsam.Pose3) -> float:
         """The particles' posterior mass within agree_m / 2 of the estimate, outside the answer's own
-        disc (ROAD_FIX_CLUSTER_M)."""
+        disc (``RoadFixParams.cluster_m``)."""
         p = self.particles
         if p is None or len(p) == 0:
             return 0.0
         xy = p.positions()
         near = (np.hypot(xy[:, 0] - pred.x(), xy[:, 1] - pred.y()) <= 0.5 * self.params.agree_m) & \
-            (np.hypot(xy[:, 0] - loc.x_m, xy[:, 1] - loc.y_m) > ROAD_FIX_CLUSTER_M)
+            (np.hypot(xy[:, 0] - loc.x_m, xy[:, 1] - loc.y_m) > self.params.cluster_m)
         return float(np.exp(p.logw[near]).sum())
 
     def _steady(self, x: float, y: float, yaw: float, scale: float) -> bool:
